@@ -1,0 +1,33 @@
+"""jaxnh — equations of motion of mechanisms with nonholonomic constraints, in JAX.
+
+Write the kinetic energy T (and optionally the acceleration energy S) as
+plain JAX functions; jaxnh derives Lagrange's equations with multipliers or
+Appell's equations by automatic differentiation, integrates them with
+diffrax, and everything works under `jit`, `vmap` and `grad`.
+
+Precision: importing jaxnh turns on JAX's 64-bit mode
+(`jax_enable_x64`), because accuracy is the product. Set the environment
+variable `JAXNH_X64=0` before the import to leave JAX's setting alone; to run
+in float32 with 64-bit mode on, pass float32 arrays (q0, qd0, ts and the
+params leaves) — the library keeps the dtype it is given.
+"""
+
+import os
+
+import jax
+
+if os.environ.get("JAXNH_X64", "1") != "0":
+    jax.config.update("jax_enable_x64", True)
+
+from . import linalg, models, profiles  # noqa: E402
+from .consistent import consistent_velocities  # noqa: E402
+from .equations import METHODS, accelerations, choose_independent  # noqa: E402
+from .mechanism import Mechanism  # noqa: E402
+from .simulate import RECORDABLE, Solution, simulate  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Mechanism", "Solution", "accelerations", "choose_independent", "consistent_velocities",
+    "simulate", "METHODS", "RECORDABLE", "models", "profiles", "linalg",
+]

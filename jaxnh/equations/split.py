@@ -1,0 +1,126 @@
+"""Independent and dependent velocities (paper eq. 17).
+
+The m constraints `c(q, qd, t) = 0` are solved for m dependent velocities
+`qd_D` given the s − m independent ones `v = qd_I`:
+
+    qd = B(q, t) v + β0(q, t)      (linear constraints),
+
+with `B = ∂qd/∂v`, the matrix of the paper's coefficients b_ai. The split is a
+static choice of indices, made by the user or by `choose_independent` from the
+constraint matrix at the initial state (column-pivoted QR picks the best
+conditioned dependent block).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from ..mechanism import Mechanism, check_independent
+
+NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
+
+
+def choose_independent(mech: Mechanism, q, qd, t, params) -> tuple:
+    """Indices of s − m independent velocities, chosen from A = ∂c/∂qd at a state.
+
+    The dependent block A[:, D] is the best conditioned one that column
+    pivoted QR finds. Needs concrete (not traced) values: under `jit` or `vmap`
+    pass `independent=` to `simulate` instead (e.g. the result of this
+    function called once outside the transformation).
+    """
+    leaves = [q, qd, t] + jax.tree_util.tree_leaves(params)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        raise ValueError(
+            "independent=None: the automatic choice of independent velocities inspects the "
+            "constraint matrix at the initial state, which is traced here (inside jit/vmap/grad). "
+            "Pass independent=(...) to simulate/accelerations, or set Mechanism(independent=...); "
+            "jaxnh.choose_independent(mech, q0, qd0, t0, params) computes it outside the transformation."
+        )
+    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    s = q.shape[0]
+    if mech.constraints is None:
+        return tuple(range(s))
+    A = np.asarray(jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd))
+    m = A.shape[0]
+    if m == 0:
+        return tuple(range(s))
+    _, R, piv = scipy.linalg.qr(A, pivoting=True, mode="economic")
+    diag = np.abs(np.diag(R))
+    if diag[-1] <= 1e3 * np.finfo(A.dtype).eps * max(diag[0], np.finfo(A.dtype).tiny):
+        raise ValueError(
+            f"the {m} constraints are linearly dependent at the initial state (rank of ∂c/∂qd < {m}); "
+            "the Appell and substituted formulations need independent constraints: "
+            "remove the redundant ones or use method='lagrange'."
+        )
+    dependent = set(int(i) for i in piv[:m])
+    return tuple(i for i in range(s) if i not in dependent)
+
+
+def check_split(mech: Mechanism, independent: tuple, q, qd, t, params) -> None:
+    """Raise if the dependent block ∂c/∂qd_D is singular at a concrete state."""
+    leaves = [q, qd, t] + jax.tree_util.tree_leaves(params)
+    if mech.constraints is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return
+    A = np.asarray(jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(jnp.asarray(qd)))
+    dep = [i for i in range(A.shape[1]) if i not in independent]
+    if not dep:
+        return
+    sv = np.linalg.svd(A[:, dep], compute_uv=False)
+    if sv[-1] <= 1e3 * np.finfo(A.dtype).eps * max(sv[0], np.finfo(A.dtype).tiny):
+        raise ValueError(
+            f"independent={independent}: the dependent velocities {tuple(dep)} cannot be solved from the "
+            f"constraints at this state (the block ∂c/∂qd_D is singular, singular values {sv}); "
+            "choose other independent velocities or pass independent=None for an automatic choice."
+        )
+
+
+def solve_square(A, b):
+    """Solve A x = b for a small square, non-symmetric A."""
+    if A.shape[0] == 1:
+        return b / A[0, 0]
+    return jnp.linalg.solve(A, b)
+
+
+class VelocitySplit(eqx.Module):
+    """Map from independent velocities v to all velocities qd."""
+
+    mech: Mechanism
+    independent: tuple = eqx.field(static=True)
+    dependent: tuple = eqx.field(static=True)
+
+    @classmethod
+    def make(cls, mech: Mechanism, s: int, m: int, independent) -> "VelocitySplit":
+        ind = check_independent(independent, s, m)
+        dep = tuple(i for i in range(s) if i not in ind)
+        return cls(mech, ind, dep)
+
+    def velocities(self, q, v, t, params):
+        """All velocities qd (s,) satisfying the constraints, from independent v (k,)."""
+        s = len(self.independent) + len(self.dependent)
+        I, D = jnp.array(self.independent), jnp.array(self.dependent)
+        qd = jnp.zeros((s,), v.dtype).at[I].set(v)
+        if not self.dependent:
+            return qd
+
+        def c_dep(x):
+            return self.mech.constraint(q, qd.at[D].set(x), t, params)
+
+        x = qd[D]
+        for _ in range(NEWTON_ITERATIONS if self.mech.nonlinear_constraints else 1):
+            c, jac = jax.linearize(c_dep, x)
+            A_D = jax.vmap(jac, out_axes=1)(jnp.eye(len(self.dependent), dtype=v.dtype))
+            x = x - solve_square(A_D, c)
+        return qd.at[D].set(x)
+
+    def velocities_and_rates(self, q, v, t, params):
+        """qd, B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""
+        qd = self.velocities(q, v, t, params)
+        B = jax.jacfwd(self.velocities, argnums=1)(q, v, t, params)
+        _, beta = jax.jvp(
+            lambda q_, t_: self.velocities(q_, v, t_, params), (q, t), (qd, jnp.ones_like(t))
+        )
+        return qd, B, beta

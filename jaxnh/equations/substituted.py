@@ -1,0 +1,70 @@
+"""The naive "substituted" method (paper eqs. 11–16) — wrong for nonholonomic constraints.
+
+The dependent velocities are substituted into the kinetic energy,
+`T*(q, v, t) = T(q, B v + β0, t)` (eq. 13), and Lagrange's equations of the
+second kind are applied to the independent coordinates with the reduced
+forces `Bᵀ Q` (eqs. 11–12):
+
+    d/dt ∂T*/∂v − ∂T*/∂q_I = Bᵀ Q.
+
+This is correct only when the constraints are integrable (holonomic). For a
+nonholonomic constraint it is wrong: for the friction variator it doubles the
+velocity term, `2 J2 U21 U21' phi1'` instead of `J2 U21 U21' phi1'`
+(eq. 16 against the correct eq. 9), and does not conserve energy. It exists
+to reproduce the paper's comparison and to show the error; do not use it
+for anything else.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..linalg import solve_spd
+from .base import Formulation
+from .split import VelocitySplit
+
+
+class Substituted(Formulation):
+    """Lagrange's second kind applied to T with the constraints substituted (wrong)."""
+
+    split: VelocitySplit
+
+    def state(self, q, qd, t, params):
+        return (q, qd[jnp.array(self.split.independent)])
+
+    def unpack(self, y, t, params):
+        q, v = y
+        return q, self.split.velocities(q, v, t, params)
+
+    def _independent_accelerations(self, q, v, t, params):
+        mech, split = self.mech, self.split
+        qd, B, beta = split.velocities_and_rates(q, v, t, params)
+
+        def T_star(q_, v_, t_):
+            return mech.kinetic(q_, split.velocities(q_, v_, t_, params), t_, params)
+
+        def p_star(q_, v_, t_):
+            return jax.grad(T_star, argnums=1)(q_, v_, t_)
+
+        _, dp = jax.jvp(lambda q_, t_: p_star(q_, v, t_), (q, t), (qd, jnp.ones_like(t)))
+        M_star = jax.jacfwd(p_star, argnums=1)(q, v, t)
+        dTdq_I = jax.grad(T_star, argnums=0)(q, v, t)[jnp.array(split.independent)]
+        Q = mech.generalized_forces(q, qd, t, params)
+        vd = solve_spd(M_star, B.T @ Q - dp + dTdq_I)
+        return qd, B @ vd + beta, vd
+
+    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+        if multipliers:
+            raise ValueError(
+                "method='substituted' has no multipliers: the constraint forces were "
+                "eliminated by substitution (which is what makes the method wrong)."
+            )
+        v = qd[jnp.array(self.split.independent)]
+        _, qdd, _ = self._independent_accelerations(q, v, t, params)
+        return qdd, None
+
+    def vector_field(self, t, y, params):
+        q, v = y
+        qd, _, vd = self._independent_accelerations(q, v, t, params)
+        return (qd, vd)

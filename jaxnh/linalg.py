@@ -1,0 +1,140 @@
+"""Small dense linear algebra specialised for mechanisms.
+
+A mechanism has a handful of coordinates, and on a CPU a call to
+`jnp.linalg.solve` on a 2×2 matrix costs about as much as the whole
+right-hand side of the equations of motion (see NOTES.md). The factorisations
+here are written out element by element for static sizes up to
+`UNROLL_MAX`, so XLA fuses them into the vector field; larger systems fall
+back to LAPACK through `jax.scipy.linalg`.
+
+All functions are differentiable, work under `vmap`, and keep the dtype of
+their inputs.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+from jaxtyping import Array, Float
+
+UNROLL_MAX = 8
+
+
+def cholesky(M: Float[Array, "s s"]) -> Float[Array, "s s"]:
+    """Lower Cholesky factor L of a symmetric positive definite M = L Lᵀ.
+
+    A matrix that is not positive definite gives NaN entries (which a
+    diffrax step controller rejects), never a silently wrong factor.
+    """
+    s = M.shape[0]
+    if s > UNROLL_MAX:
+        return jnp.linalg.cholesky(M)
+    L = [[None] * s for _ in range(s)]
+    for j in range(s):
+        d = M[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = jnp.sqrt(d)
+        for i in range(j + 1, s):
+            L[i][j] = (M[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    zero = jnp.zeros((), M.dtype)
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(s)]) for i in range(s)])
+
+
+def solve_lower(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+    """Solve L x = b for lower-triangular L (forward substitution)."""
+    s = L.shape[0]
+    if s > UNROLL_MAX:
+        return jsl.solve_triangular(L, b, lower=True)
+    x = []
+    for i in range(s):
+        acc = b[i]
+        for k in range(i):
+            acc = acc - L[i, k] * x[k]
+        x.append(acc / L[i, i])
+    return jnp.stack(x)
+
+
+def solve_upper_t(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+    """Solve Lᵀ x = b for lower-triangular L (back substitution)."""
+    s = L.shape[0]
+    if s > UNROLL_MAX:
+        return jsl.solve_triangular(L, b, lower=True, trans="T")
+    x = [None] * s
+    for i in reversed(range(s)):
+        acc = b[i]
+        for k in range(i + 1, s):
+            acc = acc - L[k, i] * x[k]
+        x[i] = acc / L[i, i]
+    return jnp.stack(x)
+
+
+def solve_spd(M: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+    """Solve M x = b for symmetric positive definite M by Cholesky."""
+    L = cholesky(M)
+    return solve_upper_t(L, solve_lower(L, b))
+
+
+def pivot_rtol(dtype) -> float:
+    """Relative pivot below which a constraint counts as redundant."""
+    return float(1e4 * jnp.finfo(dtype).eps)
+
+
+def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[Array, " m"]:
+    """Minimum-norm solution of G x = r for symmetric positive semidefinite G.
+
+    G = A M⁻¹ Aᵀ is the constraint "compliance" matrix of the multipliers.
+    When the constraints are independent it is positive definite and this is
+    an ordinary LDLᵀ solve. When some constraints repeat others (a rank
+    deficient A), the LDLᵀ pivot of each redundant row is (up to rounding)
+    zero: such rows are dropped (pivot below `pivot_rtol` times the original
+    diagonal), which gives a particular solution; its component along the
+    null space of G, spanned by L⁻ᵀ e_k for the dropped k, is then removed by
+    a masked Gram–Schmidt projection, which leaves the minimum-norm solution.
+    Differentiable wherever the rank is locally constant.
+    """
+    m = G.shape[0]
+    if m == 0:
+        return r
+    rtol = pivot_rtol(G.dtype)
+    one = jnp.ones((), G.dtype)
+    zero = jnp.zeros((), G.dtype)
+    # LDLᵀ without pivoting, redundant rows dropped.
+    L = [[zero] * m for _ in range(m)]
+    d, dinv, dropped = [], [], []
+    for j in range(m):
+        dj = G[j, j] - sum(L[j][k] * L[j][k] * d[k] for k in range(j))
+        keep = dj > rtol * jnp.abs(G[j, j]) + jnp.finfo(G.dtype).tiny
+        dj_safe = jnp.where(keep, dj, one)
+        inv = jnp.where(keep, 1 / dj_safe, zero)
+        d.append(jnp.where(keep, dj, zero))
+        dinv.append(inv)
+        dropped.append(~keep)
+        L[j][j] = one
+        for i in range(j + 1, m):
+            lij = (G[i, j] - sum(L[i][k] * L[j][k] * d[k] for k in range(j))) * inv
+            L[i][j] = lij
+    # forward, diagonal, back substitution
+    y = []
+    for i in range(m):
+        y.append(r[i] - sum(L[i][k] * y[k] for k in range(i)))
+    z = [y[i] * dinv[i] for i in range(m)]
+    x = [None] * m
+    for i in reversed(range(m)):
+        x[i] = z[i] - sum(L[k][i] * x[k] for k in range(i + 1, m))
+    x = jnp.stack(x)
+    if m == 1:
+        return x  # a dropped single constraint already gives x = 0
+    # Null space of G: columns L⁻ᵀ e_k for dropped k; project them out of x.
+    basis = []
+    for k in range(m):
+        n = [None] * m
+        for i in reversed(range(m)):
+            n[i] = (one if i == k else zero) - sum(L[j][i] * n[j] for j in range(i + 1, m))
+        v = jnp.stack(n)
+        for b in basis:
+            v = v - b * jnp.dot(b, v)
+        norm = jnp.sqrt(jnp.dot(v, v))
+        v = jnp.where(dropped[k], v / jnp.where(dropped[k], norm, one), zero)
+        basis.append(v)
+    for b in basis:
+        x = x - b * jnp.dot(b, x)
+    return x

@@ -1,0 +1,242 @@
+"""The description of a mechanism: energies, forces and constraints.
+
+A `Mechanism` holds plain JAX functions written by the user. Every function
+takes its arguments in the same order, `(q, qd, t, params)` (the acceleration
+energy `(q, qd, qdd, t, params)`, the potential `(q, t, params)`), where
+
+* `q`  — generalized coordinates, shape (s,), in their own units (m, rad);
+* `qd` — generalized velocities dq/dt, shape (s,);
+* `t`  — time, s;
+* `params` — any pytree of parameters (dict, `eqx.Module`, ...).
+
+Nothing here is differentiated yet: the formulations in `jaxnh.equations`
+turn these functions into equations of motion by automatic differentiation.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Mechanism"]
+
+
+class Mechanism(eqx.Module):
+    """A mechanism with nonholonomic constraints, described by its energies.
+
+    Arguments:
+        kinetic: kinetic energy `T(q, qd, t, params) -> scalar`, J. Its
+            Hessian in `qd` is the mass matrix and must be positive definite.
+            T may depend on t explicitly (rheonomic mechanisms).
+        constraints: nonholonomic constraints `c(q, qd, t, params) -> (m,)`,
+            each `c_k = 0` along the motion. Linear in the velocities
+            (`A(q, t) qd + a(q, t) = 0`, paper eq. 1) or nonlinear, in which
+            case the constraint forces follow Chetaev's rule: they are
+            `Aᵀ λ` with `A = ∂c/∂qd`. Set `nonlinear_constraints=True` for
+            nonlinear ones (the Appell formulation then solves for dependent
+            velocities by Newton's method).
+        forces: generalized non-potential forces `Q(q, qd, t, params) -> (s,)`
+            (N for lengths, N·m for angles): the virtual work is `Q · δq`.
+        potential: potential energy `V(q, t, params) -> scalar`, J.
+        holonomic: reserved for holonomic constraints `g(q, t, params) -> (h,)`;
+            not supported by this version (an error is raised if given).
+        acceleration_energy: Gibbs–Appell acceleration energy
+            `S(q, qd, qdd, t, params) -> scalar` (J/s²); used by
+            `method="appell"` when given. Only its part that depends on
+            `qdd` matters; it must be quadratic in `qdd`.
+        names: names of the coordinates, e.g. `("phi1", "phi2")`.
+        independent: default indices of the independent velocities for the
+            Appell and substituted formulations (else chosen automatically
+            from the constraint matrix at the initial state).
+        nonlinear_constraints: whether `c` is nonlinear in `qd`.
+    """
+
+    kinetic: Callable = eqx.field(static=True)
+    constraints: Optional[Callable] = eqx.field(static=True, default=None)
+    forces: Optional[Callable] = eqx.field(static=True, default=None)
+    potential: Optional[Callable] = eqx.field(static=True, default=None)
+    holonomic: Optional[Callable] = eqx.field(static=True, default=None)
+    acceleration_energy: Optional[Callable] = eqx.field(static=True, default=None)
+    names: Optional[tuple] = eqx.field(static=True, default=None)
+    independent: Optional[tuple] = eqx.field(static=True, default=None)
+    nonlinear_constraints: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if not callable(self.kinetic):
+            raise TypeError(f"Mechanism: `kinetic` must be a function T(q, qd, t, params), got {type(self.kinetic).__name__}")
+        for name in ("constraints", "forces", "potential", "acceleration_energy"):
+            f = getattr(self, name)
+            if f is not None and not callable(f):
+                raise TypeError(f"Mechanism: `{name}` must be a function or None, got {type(f).__name__}")
+        if self.holonomic is not None:
+            raise NotImplementedError(
+                "Mechanism: `holonomic` constraints are not supported yet; "
+                "eliminate them by choosing independent coordinates, or write them "
+                "as differentiated velocity constraints in `constraints`."
+            )
+        if self.names is not None and not all(isinstance(n, str) for n in self.names):
+            raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
+
+    # --- evaluation helpers used by the formulations -------------------------
+
+    def n_constraints(self, q, qd, t, params) -> int:
+        """Number m of nonholonomic constraints (static)."""
+        if self.constraints is None:
+            return 0
+        return jax.eval_shape(self.constraints, q, qd, t, params).shape[0]
+
+    def constraint(self, q, qd, t, params):
+        """c(q, qd, t), shape (m,); an empty array without constraints."""
+        if self.constraints is None:
+            return jnp.zeros((0,), jnp.result_type(qd))
+        return jnp.asarray(self.constraints(q, qd, t, params))
+
+    def generalized_forces(self, q, qd, t, params):
+        """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
+        Q = jnp.zeros_like(qd)
+        if self.forces is not None:
+            Q = Q + jnp.asarray(self.forces(q, qd, t, params), dtype=qd.dtype)
+        if self.potential is not None:
+            Q = Q - jax.grad(lambda x: self.potential(x, t, params))(q)
+        return Q
+
+    def energy(self, q, qd, t, params):
+        """Total mechanical energy T + V, J."""
+        E = self.kinetic(q, qd, t, params)
+        if self.potential is not None:
+            E = E + self.potential(q, t, params)
+        return E
+
+    def coordinate_names(self, s: int) -> tuple:
+        """Names of the s coordinates (`q0`, `q1`, ... when none were given)."""
+        return tuple(self.names) if self.names is not None else tuple(f"q{i}" for i in range(s))
+
+    # --- validation ----------------------------------------------------------
+
+    def check_shapes(self, q, qd, t, params) -> int:
+        """Check output shapes of the user functions at trace time; return m.
+
+        Raises ValueError naming the function, the shape that came and the
+        shape that was expected.
+        """
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        if q.ndim != 1:
+            raise ValueError(f"q must be a vector of coordinates, shape (s,); got shape {q.shape}")
+        s = q.shape[0]
+        if qd.shape != (s,):
+            raise ValueError(f"qd must have the shape of q, ({s},); got {qd.shape}")
+        if self.names is not None and len(self.names) != s:
+            raise ValueError(f"Mechanism `names` has {len(self.names)} entries but q has s={s} coordinates")
+
+        def out(fn, name, *args):
+            try:
+                return jax.eval_shape(fn, *args)
+            except Exception as e:  # re-raise with the function named
+                raise type(e)(f"Mechanism `{name}` failed when called with q, qd of shape ({s},): {e}") from e
+
+        T = out(self.kinetic, "kinetic", q, qd, t, params)
+        if getattr(T, "shape", None) != ():
+            raise ValueError(f"Mechanism `kinetic` must return a scalar; got shape {getattr(T, 'shape', type(T))}")
+        m = 0
+        if self.constraints is not None:
+            c = out(self.constraints, "constraints", q, qd, t, params)
+            if len(getattr(c, "shape", ())) != 1:
+                raise ValueError(f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}")
+            m = c.shape[0]
+            if m > s:
+                raise ValueError(f"Mechanism `constraints` returns m={m} constraints but there are only s={s} coordinates; expected m < s")
+        if self.forces is not None:
+            Q = out(self.forces, "forces", q, qd, t, params)
+            if getattr(Q, "shape", None) != (s,):
+                raise ValueError(f"Mechanism `forces` must return shape ({s},); got {getattr(Q, 'shape', None)}")
+        if self.potential is not None:
+            V = out(self.potential, "potential", q, t, params)
+            if getattr(V, "shape", None) != ():
+                raise ValueError(f"Mechanism `potential` must return a scalar; got shape {getattr(V, 'shape', None)}")
+        if self.acceleration_energy is not None:
+            S = out(self.acceleration_energy, "acceleration_energy", q, qd, qd, t, params)
+            if getattr(S, "shape", None) != ():
+                raise ValueError(f"Mechanism `acceleration_energy` must return a scalar; got shape {getattr(S, 'shape', None)}")
+        if self.independent is not None:
+            check_independent(self.independent, s, m)
+        return m
+
+    def check_values(self, q, qd, t, params, *, constraint_rtol: Optional[float] = None):
+        """Value checks at a concrete state (skipped for traced values).
+
+        Non-finite inputs, a mass matrix that is not positive definite, and
+        initial velocities that violate the constraints each raise a
+        ValueError that says what came and what was expected.
+        """
+        leaves = {"q": q, "qd": qd, "t": t}
+        for name, x in leaves.items():
+            if _is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+                raise ValueError(f"{name} must be finite; got {np.asarray(x)}")
+        for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+            if isinstance(leaf, (jax.Array, np.ndarray, float)) and _is_concrete(leaf):
+                a = np.asarray(leaf)
+                if np.issubdtype(a.dtype, np.inexact) and not np.all(np.isfinite(a)):
+                    raise ValueError(f"params{jax.tree_util.keystr(path)} must be finite; got {a}")
+        if not all(_is_concrete(x) for x in (q, qd, t)) or not _params_concrete(params):
+            return
+        M, c, A, H = (np.asarray(x) for x in _initial_state_terms(self, q, qd, t, params))
+        if not np.all(np.isfinite(M)):
+            raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
+        eig = np.linalg.eigvalsh(0.5 * (M + M.T))
+        if eig.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(eig).max(), np.finfo(M.dtype).tiny):
+            raise ValueError(
+                "Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not positive "
+                f"definite (eigenvalues {eig}); expected all eigenvalues > 0. Check the inertia parameters."
+            )
+        if self.constraints is None:
+            return
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"Mechanism `constraints` is not finite at the initial state: c = {c}")
+        scale = 1.0 + np.max(np.abs(A) @ np.abs(np.asarray(qd)), initial=0.0)
+        rtol = constraint_rtol if constraint_rtol is not None else float(np.finfo(c.dtype).eps) ** 0.5
+        if np.max(np.abs(c), initial=0.0) > rtol * scale:
+            raise ValueError(
+                f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)} "
+                f"(max {np.max(np.abs(c)):.3g}); expected ≤ {rtol * scale:.3g}. "
+                "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
+            )
+        if not self.nonlinear_constraints and np.max(np.abs(H), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(A), initial=0.0)):
+            raise ValueError(
+                "Mechanism `constraints` is nonlinear in qd (∂²c/∂qd² ≠ 0 at the initial state); "
+                "pass nonlinear_constraints=True to Mechanism."
+            )
+
+
+@eqx.filter_jit
+def _initial_state_terms(mech: Mechanism, q, qd, t, params):
+    """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state (compiled once)."""
+    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
+
+    def c(v):
+        return mech.constraint(q, v, t, params)
+
+    return M, c(qd), jax.jacfwd(c)(qd), jax.jacfwd(jax.jacfwd(c))(qd)
+
+
+def check_independent(independent: Sequence[int], s: int, m: int) -> tuple:
+    """Validate a choice of independent velocity indices; return it as a tuple."""
+    ind = tuple(int(i) for i in independent)
+    if len(ind) != s - m or len(set(ind)) != len(ind) or not all(0 <= i < s for i in ind):
+        raise ValueError(
+            f"independent={tuple(independent)!r}: expected {s - m} distinct indices in 0..{s - 1} "
+            f"(s={s} coordinates minus m={m} constraints)"
+        )
+    return tuple(sorted(ind))
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _params_concrete(params) -> bool:
+    return all(_is_concrete(l) for l in jax.tree_util.tree_leaves(params))

@@ -1,0 +1,5 @@
+"""Ready-made mechanisms: `variator` (the seed paper's friction variator)."""
+
+from . import variator
+
+__all__ = ["variator"]

@@ -1,0 +1,162 @@
+"""Transformations through `simulate` and the errors bad input gets."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnh as nh
+from jaxnh.models import variator as V
+from jaxnh.profiles import Fourier
+
+TS = jnp.linspace(0.0, 3.0, 31)
+MECH = V.mechanism()
+
+
+def params(J1=0.02, J2=0.05, amp=0.4):
+    return V.VariatorParams(J1=J1, J2=J2, U21=Fourier(1.0, sin=[amp], period=2.0), M1=0.3, M2=-0.1)
+
+
+def final_speed(J2, method="appell"):
+    p = params(J2=J2)
+    sol = nh.simulate(MECH, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS, method=method, rtol=1e-10, atol=1e-12)
+    return sol.qd[-1, 1]
+
+
+@pytest.fixture(scope="module")
+def jitted():
+    return jax.jit(final_speed)
+
+
+def test_jit_equals_eager(jitted):
+    np.testing.assert_allclose(jitted(0.05), final_speed(0.05), rtol=1e-13)
+
+
+def test_vmap_over_params_equals_loop(jitted):
+    J2s = jnp.array([0.03, 0.05, 0.08])
+    batched = jax.jit(jax.vmap(final_speed))(J2s)
+    looped = jnp.stack([jitted(j) for j in J2s])
+    np.testing.assert_allclose(batched, looped, rtol=1e-9)
+
+
+def test_vmap_over_initial_states():
+    p = params()
+
+    def run(w0):
+        return nh.simulate(MECH, p, jnp.zeros(2), jnp.stack([w0, w0]), TS, rtol=1e-10, atol=1e-12).q[-1]
+
+    w0s = jnp.array([1.0, 2.0, 3.0])
+    out = jax.vmap(run)(w0s)
+    for i, w0 in enumerate(np.asarray(w0s)):
+        q_ref, _ = V.closed_form(p, TS, w0=float(w0))
+        np.testing.assert_allclose(out[i], q_ref[-1], atol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["appell", "lagrange"])
+def test_grad_matches_central_difference(method):
+    f = jax.jit(lambda J2: final_speed(J2, method))
+    g = jax.grad(lambda J2: final_speed(J2, method))(0.05)
+    h = 1e-5
+    fd = (f(0.05 + h) - f(0.05 - h)) / (2 * h)
+    print(f"{method}: grad {float(g):.10f}, central difference {float(fd):.10f}")
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+    assert abs(float(g)) > 1e-3
+
+
+def test_forward_mode_gradient_with_forward_adjoint():
+    def f(J2):
+        sol = nh.simulate(MECH, params(J2=J2), jnp.zeros(2), jnp.array([2.0, 2.0]), TS,
+                          rtol=1e-10, atol=1e-12, adjoint=diffrax.ForwardMode())
+        return sol.qd[-1, 1]
+
+    g_fwd = jax.jacfwd(f)(0.05)
+    g_rev = jax.grad(final_speed)(0.05)
+    np.testing.assert_allclose(g_fwd, g_rev, rtol=1e-8)
+
+
+# --- bad input ------------------------------------------------------------------
+
+
+def good():
+    return dict(mech=MECH, params=params(), q0=jnp.zeros(2), qd0=jnp.array([2.0, 2.0]), ts=TS)
+
+
+def run(**changes):
+    kw = good()
+    kw.update(changes)
+    return nh.simulate(kw.pop("mech"), kw.pop("params"), kw.pop("q0"), kw.pop("qd0"), kw.pop("ts"), **kw)
+
+
+def test_wrong_shape_of_kinetic_energy():
+    bad = nh.Mechanism(lambda q, qd, t, p: 0.5 * qd**2, constraints=V.constraint)
+    with pytest.raises(ValueError, match=r"`kinetic` must return a scalar; got shape \(2,\)"):
+        run(mech=bad)
+
+
+def test_wrong_shape_of_forces():
+    bad = nh.Mechanism(V.kinetic, constraints=V.constraint, forces=lambda q, qd, t, p: jnp.zeros(3), independent=(0,))
+    with pytest.raises(ValueError, match=r"`forces` must return shape \(2,\); got \(3,\)"):
+        run(mech=bad)
+
+
+def test_more_constraints_than_coordinates():
+    bad = nh.Mechanism(V.kinetic, constraints=lambda q, qd, t, p: jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"m=3 constraints but there are only s=2 coordinates"):
+        run(mech=bad)
+
+
+def test_mass_matrix_not_positive_definite():
+    with pytest.raises(ValueError, match="not positive definite"):
+        run(params=params(J1=-0.02))
+
+
+def test_initial_velocities_violate_constraints():
+    with pytest.raises(ValueError, match=r"qd0 violates the nonholonomic constraints.*max 0.5"):
+        run(qd0=jnp.array([2.0, 2.5]))
+
+
+@pytest.mark.parametrize("name,value", [("q0", jnp.array([0.0, jnp.nan])), ("qd0", jnp.array([jnp.inf, 1.0]))])
+def test_non_finite_state(name, value):
+    key = {"q0": "q", "qd0": "qd"}[name]
+    with pytest.raises(ValueError, match=f"{key} must be finite"):
+        run(**{name: value})
+
+
+def test_non_finite_params():
+    with pytest.raises(ValueError, match=r"params.*J2.*must be finite"):
+        run(params=params(J2=jnp.nan))
+
+
+def test_bad_report_times():
+    with pytest.raises(ValueError, match="ts must be strictly increasing"):
+        run(ts=jnp.array([0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="at least 2 report times"):
+        run(ts=jnp.array([0.0]))
+
+
+def test_bad_method_and_record():
+    with pytest.raises(ValueError, match="method must be one of"):
+        run(method="euler")
+    with pytest.raises(ValueError, match="record entries must be among"):
+        run(record=("momentum",))
+
+
+def test_nonlinear_constraint_needs_flag():
+    bad = nh.Mechanism(V.kinetic, constraints=lambda q, qd, t, p: jnp.stack([qd[0] ** 2 - qd[1]]), independent=(0,))
+    with pytest.raises(ValueError, match="nonlinear_constraints=True"):
+        run(mech=bad, qd0=jnp.array([2.0, 4.0]))
+
+
+def test_automatic_split_under_vmap_asks_for_independent():
+    mech = nh.Mechanism(V.kinetic, constraints=V.constraint, forces=V.torques)
+    with pytest.raises(ValueError, match="Pass independent="):
+        jax.vmap(lambda J2: run(mech=mech, params=params(J2=J2)).q)(jnp.array([0.05, 0.06]))
+
+
+def test_step_limit_is_reported_not_garbage():
+    with pytest.raises(Exception, match="maximum number of solver steps"):
+        run(max_steps=5)
+    sol = run(max_steps=5, throw=False)
+    assert not bool(sol.success)
+    assert "maximum number of solver steps" in sol.message

@@ -1,0 +1,153 @@
+"""A generic mechanism (s = 4, m = 2): configuration-dependent mass matrix, rheonomic
+kinetic energy and constraints with free terms. "appell" must equal "lagrange", and
+the constraints must hold along the motion."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnh as nh
+
+P = {"m": 1.3, "I": 0.4, "J": 0.2, "r": 0.3, "k": 0.8, "c": 0.05}
+
+
+def mass_matrix(q, p):
+    """Positive definite, configuration dependent."""
+    C = jnp.array([
+        [1.0, 0.2 * jnp.sin(q[2]), 0.0, 0.1 * jnp.cos(q[3])],
+        [0.0, 1.0, 0.3 * jnp.cos(q[2]), 0.0],
+        [0.1 * jnp.sin(q[3]), 0.0, 1.0, 0.2 * jnp.sin(q[2] - q[3])],
+        [0.0, 0.1, 0.0, 1.0],
+    ])
+    return C.T @ jnp.diag(jnp.array([p["m"], p["m"], p["I"], p["J"]])) @ C
+
+
+def kinetic(q, qd, t, p):
+    """½ qdᵀ M(q) qd plus a rheonomic term (a frame moving with speed u(t))."""
+    u = jnp.array([0.2 * jnp.sin(1.3 * t), 0.1 * t, 0.0, 0.0])
+    return 0.5 * qd @ mass_matrix(q, p) @ qd + p["m"] * jnp.dot(u, qd) * jnp.cos(q[2]) + 0.5 * p["m"] * jnp.dot(u, u)
+
+
+def constraints(q, qd, t, p):
+    """A knife edge on a moving surface and a rolling wheel with a varying ratio."""
+    x, y, th, ph = q
+    return jnp.stack([
+        qd[0] * jnp.sin(th) - qd[1] * jnp.cos(th) - 0.1 * jnp.sin(t),
+        p["r"] * (1 + 0.2 * jnp.sin(t)) * qd[3] - (qd[0] * jnp.cos(th) + qd[1] * jnp.sin(th)),
+    ])
+
+
+def forces(q, qd, t, p):
+    return -p["c"] * qd + jnp.array([0.0, 0.0, 0.1 * jnp.cos(t), 0.0])
+
+
+def potential(q, t, p):
+    return 0.5 * p["k"] * (q[0] ** 2 + 0.5 * q[1] ** 2) + 0.3 * jnp.cos(q[2])
+
+
+MECH = nh.Mechanism(kinetic, constraints=constraints, forces=forces, potential=potential,
+                    names=("x", "y", "theta", "phi"))
+
+
+def random_state(key):
+    k1, k2, k3 = jax.random.split(key, 3)
+    q = jax.random.normal(k1, (4,))
+    t = jax.random.uniform(k3, minval=0, maxval=5)
+    qd = nh.consistent_velocities(MECH, q, jax.random.normal(k2, (4,)), t, P)
+    return q, qd, t
+
+
+@pytest.fixture(scope="module")
+def states():
+    return jax.vmap(random_state)(jax.random.split(jax.random.PRNGKey(3), 40))
+
+
+def test_consistent_velocities_satisfy_constraints(states):
+    q, qd, t = states
+    c = jax.vmap(lambda a, b, s: constraints(a, b, s, P))(q, qd, t)
+    assert np.max(np.abs(c)) < 1e-12
+
+
+@pytest.mark.parametrize("independent", [(2, 3), (0, 2)])
+def test_appell_equals_lagrange_accelerations(states, independent):
+    q, qd, t = states
+
+    def both(q, qd, t):
+        a_l, lam_l = nh.accelerations(MECH, q, qd, t, P, method="lagrange")
+        a_a, lam_a = nh.accelerations(MECH, q, qd, t, P, method="appell", independent=independent)
+        return a_l, lam_l, a_a, lam_a
+
+    a_l, lam_l, a_a, lam_a = jax.jit(jax.vmap(both))(q, qd, t)
+    np.testing.assert_allclose(a_a, a_l, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(lam_a, lam_l, rtol=1e-10, atol=1e-10)
+    # accelerations satisfy the differentiated constraints
+    def cdot(q, qd, qdd, t):
+        return jax.jvp(lambda a, b, s: constraints(a, b, s, P), (q, qd, t), (qd, qdd, jnp.ones_like(t)))[1]
+    assert np.max(np.abs(jax.vmap(cdot)(q, qd, a_l, t))) < 1e-10
+
+
+@pytest.fixture(scope="module")
+def trajectories():
+    q0 = jnp.array([0.2, -0.1, 0.4, 0.0])
+    qd0 = nh.consistent_velocities(MECH, q0, jnp.array([0.5, 0.3, -0.4, 0.1]), 0.0, P)
+    ts = jnp.linspace(0.0, 8.0, 81)
+    kw = dict(rtol=1e-12, atol=1e-12, solver=diffrax.Dopri8(), record=("residual", "energy"))
+    return {
+        "lagrange": nh.simulate(MECH, P, q0, qd0, ts, method="lagrange", **kw),
+        "appell": nh.simulate(MECH, P, q0, qd0, ts, method="appell", **kw),  # automatic split
+    }
+
+
+def test_appell_equals_lagrange_trajectories(trajectories):
+    a, l = trajectories["appell"], trajectories["lagrange"]
+    assert bool(a.success) and bool(l.success)
+    err = max(np.max(np.abs(a.q - l.q)), np.max(np.abs(a.qd - l.qd)))
+    print(f"appell vs lagrange trajectory difference {err:.2e}")
+    assert err < 1e-9
+
+
+def test_constraints_hold_along_the_motion(trajectories):
+    # Appell integrates only independent velocities: exact to rounding.
+    assert np.max(np.abs(trajectories["appell"].residual)) < 1e-12
+    # Lagrange keeps the derivative of the constraint: drift at the tolerance level.
+    assert np.max(np.abs(trajectories["lagrange"].residual)) < 1e-9
+
+
+def test_redundant_constraints_give_minimum_norm_multipliers():
+    """The same knife-edge constraint twice (and a multiple of it): accelerations unchanged,
+    multipliers finite and of minimum norm (split equally)."""
+    def c_red(q, qd, t, p):
+        c = constraints(q, qd, t, p)
+        return jnp.stack([c[0], c[1], c[0], 2.0 * c[1]])
+
+    red = nh.Mechanism(kinetic, constraints=c_red, forces=forces, potential=potential)
+    q, qd, t = random_state(jax.random.PRNGKey(7))
+    a, lam = nh.accelerations(MECH, q, qd, t, P, method="lagrange")
+    a_r, lam_r = jax.jit(lambda q, qd, t: nh.accelerations(red, q, qd, t, P, method="lagrange"))(q, qd, t)
+    assert np.all(np.isfinite(a_r)) and np.all(np.isfinite(lam_r))
+    np.testing.assert_allclose(a_r, a, rtol=1e-9, atol=1e-9)
+    # min-norm: lam0 = lam_r0 + lam_r2 split evenly; lam1 = lam_r1 + 2 lam_r3 with lam_r3 = 2 lam_r1
+    np.testing.assert_allclose(lam_r, [lam[0] / 2, lam[1] / 5, lam[0] / 2, 2 * lam[1] / 5], rtol=1e-8, atol=1e-9)
+
+
+def test_appell_with_user_acceleration_energy_matches():
+    """S supplied by the user (½ qddᵀ M qdd + qddᵀ h from the known M) gives the same."""
+    def S(q, qd, qdd, t, p):
+        M = mass_matrix(q, p)
+        h = nh.equations.terms.mass_and_velocity_terms(MECH, q, qd, t, p)[1]
+        return 0.5 * qdd @ M @ qdd + qdd @ h
+
+    mech_S = nh.Mechanism(kinetic, constraints=constraints, forces=forces, potential=potential, acceleration_energy=S)
+    q, qd, t = random_state(jax.random.PRNGKey(11))
+    a_S, _ = nh.accelerations(mech_S, q, qd, t, P, method="appell", independent=(2, 3))
+    a_l, _ = nh.accelerations(MECH, q, qd, t, P, method="lagrange")
+    np.testing.assert_allclose(a_S, a_l, rtol=1e-10, atol=1e-10)
+
+
+def test_singular_split_is_refused():
+    """theta' appears in no constraint, so it cannot be a dependent velocity."""
+    q, qd, t = random_state(jax.random.PRNGKey(5))
+    with pytest.raises(ValueError, match=r"independent=\(1, 3\).*singular"):
+        nh.accelerations(MECH, q, qd, t, P, method="appell", independent=(1, 3))
