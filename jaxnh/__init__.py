@@ -23,11 +23,11 @@ from . import linalg, models, profiles  # noqa: E402
 from .consistent import consistent_velocities  # noqa: E402
 from .equations import METHODS, accelerations, choose_independent  # noqa: E402
 from .mechanism import Mechanism  # noqa: E402
-from .simulate import RECORDABLE, Solution, simulate  # noqa: E402
+from .simulate import RECORDABLE, STABILIZATIONS, STATUS, Solution, simulate  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
     "Mechanism", "Solution", "accelerations", "choose_independent", "consistent_velocities",
-    "simulate", "METHODS", "RECORDABLE", "models", "profiles", "linalg",
+    "simulate", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
 ]

@@ -13,11 +13,24 @@ from jaxtyping import Array, Float
 
 from .equations import METHODS, formulation
 from .equations.base import as_float
+from .equations.lagrange import Lagrange
+from .consistent import consistent_velocities
 from .mechanism import Mechanism
+from .stabilize import ProjectedSolver, default_baumgarte_rate
 
-__all__ = ["Solution", "simulate", "RECORDABLE", "default_solver"]
+__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver"]
 
 RECORDABLE = ("multipliers", "energy", "residual")
+STABILIZATIONS = (None, "baumgarte", "projection")
+
+
+class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Why a simulation stopped: diffrax's results plus jaxnh's own."""
+
+    non_finite_input = (
+        "The initial state, the report times or the parameters contain NaN or inf; "
+        "nothing was integrated."
+    )
 
 
 class Solution(eqx.Module):
@@ -37,9 +50,11 @@ class Solution(eqx.Module):
         stats: dict with `num_steps` (attempted), `num_accepted_steps`,
             `num_rejected_steps`, `rhs_evaluations` (vector-field calls:
             stages per step times attempted steps), `max_steps`.
-        status: `diffrax.RESULTS` item: `RESULTS.successful`, or why the
-            solve failed (step limit, step size collapse). After a failure
-            the values past the failure time are not a solution.
+        status: `jaxnh.STATUS` item (diffrax's `RESULTS` extended):
+            `STATUS.successful`, or why the solve failed (step limit, step
+            size collapse, non-finite input). After a failure the values past
+            the failure time are NaN or inf, never a plausible-looking
+            answer.
         names: coordinate names.
     """
 
@@ -50,20 +65,28 @@ class Solution(eqx.Module):
     energy: Optional[Float[Array, " n"]]
     residual: Optional[Float[Array, "n m"]]
     stats: dict
-    status: diffrax.RESULTS
+    status: STATUS
     names: tuple = eqx.field(static=True)
 
     @property
     def success(self):
         """Boolean (array under vmap): did the solve reach the last report time."""
-        return self.status == diffrax.RESULTS.successful
+        return self.status == STATUS.successful
 
     @property
     def message(self) -> str:
         """Why the solve failed, or "success" (concrete, un-batched solutions only)."""
         if bool(np.all(np.asarray(self.success))):
             return "success"
-        return f"solve failed: {diffrax.RESULTS[self.status]}"
+        msg = f"solve failed: {STATUS[self.status]}"
+        if self.status == STATUS.max_steps_reached:
+            msg += (
+                " If the step count is large because the problem is stiff (strong damping, a very "
+                "steep ratio change, a large Baumgarte rate), use an implicit solver, e.g. "
+                "solver=diffrax.Kvaerno5(); if the state became non-finite (a singular mass matrix "
+                "or dependent-velocity block), check the parameters or use method='lagrange'."
+            )
+        return msg
 
 
 def default_solver(rtol: float):
@@ -107,6 +130,8 @@ def simulate(
     dt0=None,
     adjoint: Optional[diffrax.AbstractAdjoint] = None,
     throw: bool = True,
+    stabilization: Optional[str] = None,
+    baumgarte_rate=None,
 ) -> Solution:
     """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
 
@@ -135,6 +160,11 @@ def simulate(
             `jax.jacfwd`).
         throw: raise an error when the solve fails (default). With
             `throw=False` (recommended under `vmap`) check `sol.status`.
+        stabilization: constraint drift control for "lagrange": None,
+            "baumgarte" (rate `baumgarte_rate`, 1/s, default one over the
+            median report interval) or "projection" (velocities projected
+            onto the constraints after every step). See `jaxnh.stabilize`.
+        baumgarte_rate: α for "baumgarte", 1/s.
 
     Returns:
         A `Solution`.
@@ -147,17 +177,37 @@ def simulate(
             raise ValueError(f"record entries must be among {RECORDABLE}; got {r!r}")
     if method == "substituted" and "multipliers" in record:
         raise ValueError("record='multipliers' is not available for method='substituted' (it has no multipliers)")
+    if stabilization not in STABILIZATIONS:
+        raise ValueError(f"stabilization must be one of {STABILIZATIONS}; got {stabilization!r}")
+    if stabilization is not None and method != "lagrange":
+        raise ValueError(
+            f"stabilization={stabilization!r} applies to method='lagrange' only: method={method!r} "
+            "integrates the independent velocities and cannot drift off the constraints."
+        )
+    if baumgarte_rate is not None and stabilization != "baumgarte":
+        raise ValueError("baumgarte_rate is given but stabilization is not 'baumgarte'")
     q0 = as_float(q0)
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     ts = jnp.asarray(ts, dtype=q0.dtype)
     _check_ts(ts)
+    eps = float(jnp.finfo(q0.dtype).eps)
+    if rtol < 10 * eps:
+        raise ValueError(
+            f"rtol={rtol:g} is below what {q0.dtype} can resolve (machine epsilon {eps:.2g}); "
+            f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
+        )
     t0 = ts[0]
     mech.check_shapes(q0, qd0, t0, params)
     mech.check_values(q0, qd0, t0, params)
     form = formulation(mech, method, q0, qd0, t0, params, independent)
+    if stabilization == "baumgarte":
+        rate = default_baumgarte_rate(ts) if baumgarte_rate is None else jnp.asarray(baumgarte_rate, q0.dtype)
+        form = Lagrange(mech, baumgarte=rate)
     y0 = form.state(q0, qd0, t0, params)
 
     solver = default_solver(rtol) if solver is None else solver
+    if stabilization == "projection":
+        solver = ProjectedSolver(solver, _velocity_projection(mech))
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     ys, result, stats, out = _integrate(
         form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0, adjoint, throw
@@ -185,21 +235,34 @@ def _integrate(form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0,
         dy = form.vector_field(t, y, p)
         return jax.tree_util.tree_map(lambda d, x: d.astype(x.dtype), dy, y)
 
+    # Non-finite input would make the adaptive loop reject steps until
+    # max_steps: detect it first, integrate a harmless stand-in, flag it.
+    finite = _all_finite((y0, ts, params))
+    y0_run = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.zeros_like(x)), y0)
+    params_run = jax.tree_util.tree_map(
+        lambda x: jnp.where(finite, x, jnp.ones_like(x)) if _is_float_array(x) else x, params
+    )
+    ts_run = jnp.where(finite, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
+    if throw:
+        y0_run = eqx.error_if(y0_run, ~finite, STATUS[STATUS.non_finite_input])
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vector_field),
         solver,
-        t0=ts[0],
-        t1=ts[-1],
+        t0=ts_run[0],
+        t1=ts_run[-1],
         dt0=dt0,
-        y0=y0,
-        args=params,
-        saveat=diffrax.SaveAt(ts=ts),
+        y0=y0_run,
+        args=params_run,
+        saveat=diffrax.SaveAt(ts=ts_run),
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
         max_steps=max_steps,
         adjoint=adjoint,
         throw=throw,
     )
-    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(sol.ys, ts)
+    ys = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.nan), sol.ys)
+    if isinstance(solver, ProjectedSolver):  # dense output between steps is unprojected
+        ys = jax.vmap(lambda t, y: solver.project(t, y, params))(ts, ys)
+    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, ts)
     out = {}
     if "multipliers" in record:
         out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(q, qd, ts)
@@ -211,4 +274,24 @@ def _integrate(form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0,
     stages = _stages_per_step(solver)
     if stages is not None:
         stats["rhs_evaluations"] = stats["num_steps"] * stages
-    return (q, qd), sol.result, stats, out
+    result = STATUS.where(finite, STATUS.promote(sol.result), STATUS.non_finite_input)
+    return (q, qd), result, stats, out
+
+
+def _is_float_array(x) -> bool:
+    return isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.inexact)
+
+
+def _all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def _velocity_projection(mech):
+    """The "projection" stabiliser's map: (q, qd) → (q, consistent qd)."""
+
+    def project(t, y, params):
+        q, qd = y
+        return (q, consistent_velocities(mech, q, qd, t, params))
+
+    return project

@@ -12,7 +12,10 @@ semidefinite for redundant ones, where the minimum-norm multipliers are
 returned (`jaxnh.linalg.solve_psd_min_norm`); the accelerations are unique
 either way. The integrated state is (q, qd): the velocity constraint itself
 is only kept through its derivative and drifts at the level of the solver
-tolerance.
+tolerance, unless stabilised: with `baumgarte` set to a rate α (1/s) the
+acceleration constraint becomes `A qdd + b = −α c`, so a violation decays like
+exp(−α t) instead of accumulating (Baumgarte's method, first-order form as
+suits velocity constraints).
 """
 
 from __future__ import annotations
@@ -23,7 +26,13 @@ from .terms import constraint_terms, mass_and_velocity_terms
 
 
 class Lagrange(Formulation):
-    """Lagrange's equations of the first kind with multipliers; state (q, qd)."""
+    """Lagrange's equations of the first kind with multipliers; state (q, qd).
+
+    `baumgarte`: optional constraint stabilisation rate α, 1/s (a traced array
+    is fine, so it may be differentiated or batched).
+    """
+
+    baumgarte: object = None
 
     def state(self, q, qd, t, params):
         return (q, qd)
@@ -40,6 +49,8 @@ class Lagrange(Formulation):
             qdd = solve_upper_t(L, u)
             return qdd, (qdd[:0] if multipliers else None)
         A, b = constraint_terms(mech, q, qd, t, params)
+        if self.baumgarte is not None:
+            b = b + self.baumgarte * mech.constraint(q, qd, t, params)
         if A.shape[0] == 0:
             qdd = solve_upper_t(L, u)
             return qdd, (b if multipliers else None)
