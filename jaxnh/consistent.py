@@ -6,7 +6,7 @@ import jax.numpy as jnp
 
 from .equations.base import as_float, as_time
 from .equations.terms import constraint_terms, mass_and_velocity_terms
-from .linalg import cholesky, solve_lower, solve_psd_min_norm, solve_upper_t
+from .linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
 from .mechanism import Mechanism
 
 __all__ = ["consistent_velocities"]
@@ -34,6 +34,6 @@ def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3
         A, _ = constraint_terms(mech, q, qd, t, params)
         c = mech.constraint(q, qd, t, params)
         W = solve_lower(L, A.T)
-        mu = solve_psd_min_norm(W.T @ W, c)
-        qd = qd - solve_upper_t(L, W @ mu)
+        mu = solve_psd_min_norm(mm(W.T, W), c)
+        qd = qd - solve_upper_t(L, mm(W, mu))
     return qd

@@ -20,6 +20,22 @@ from jaxtyping import Array, Float
 UNROLL_MAX = 8
 
 
+def mm(a, b):
+    """Matrix product for small matrices/vectors as a fusible multiply-and-sum.
+
+    XLA on CPU turns `a @ b` into a library call whose fixed cost dominates
+    for 2×2 operands; a broadcast product and a sum fuse with the rest of
+    the right-hand side. Falls back to `@` for large operands.
+    """
+    if max(a.size, b.size) > UNROLL_MAX * UNROLL_MAX:
+        return a @ b
+    if b.ndim == 1:
+        return jnp.sum(a * b, axis=-1)
+    if a.ndim == 1:
+        return jnp.sum(a[:, None] * b, axis=0)
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
 def cholesky(M: Float[Array, "s s"]) -> Float[Array, "s s"]:
     """Lower Cholesky factor L of a symmetric positive definite M = L Lᵀ.
 

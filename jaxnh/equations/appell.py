@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..linalg import solve_spd
+from ..linalg import mm, solve_spd
 from .base import Formulation, multipliers_from_accelerations
 from .split import VelocitySplit
 from .terms import mass_and_velocity_terms
@@ -32,7 +32,7 @@ class Appell(Formulation):
     split: VelocitySplit
 
     def state(self, q, qd, t, params):
-        return (q, qd[jnp.array(self.split.independent)])
+        return (q, self.split.independent_of(qd))
 
     def unpack(self, y, t, params):
         q, v = y
@@ -44,18 +44,18 @@ class Appell(Formulation):
         Q = mech.generalized_forces(q, qd, t, params)
         if mech.acceleration_energy is None:
             M, h = mass_and_velocity_terms(mech, q, qd, t, params)
-            K = B.T @ M @ B
-            rhs = B.T @ (Q - h - M @ beta)
+            K = mm(B.T, mm(M, B))
+            rhs = mm(B.T, Q - h - mm(M, beta))
         else:
             dS = jax.grad(mech.acceleration_energy, argnums=2)
             g0, H = jax.linearize(lambda a: dS(q, qd, a, t, params), beta)
-            K = B.T @ jax.vmap(H, in_axes=1, out_axes=1)(B)
-            rhs = B.T @ (Q - g0)
+            K = mm(B.T, jax.vmap(H, in_axes=1, out_axes=1)(B))
+            rhs = mm(B.T, Q - g0)
         vd = solve_spd(K, rhs)
-        return qd, B @ vd + beta, vd
+        return qd, mm(B, vd) + beta, vd
 
     def accelerations(self, q, qd, t, params, multipliers: bool = False):
-        v = qd[jnp.array(self.split.independent)]
+        v = self.split.independent_of(qd)
         qd, qdd, _ = self._independent_accelerations(q, v, t, params)
         lam = multipliers_from_accelerations(self.mech, q, qd, qdd, t, params) if multipliers else None
         return qdd, lam

@@ -7,7 +7,7 @@ import abc
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..linalg import solve_psd_min_norm
+from ..linalg import mm, solve_psd_min_norm
 from ..mechanism import Mechanism
 from .terms import constraint_terms, mass_and_velocity_terms
 
@@ -47,9 +47,9 @@ def multipliers_from_accelerations(mech, q, qd, qdd, t, params):
     the lever arm r (N·m).
     """
     M, h = mass_and_velocity_terms(mech, q, qd, t, params)
-    R = M @ qdd + h - mech.generalized_forces(q, qd, t, params)
+    R = mm(M, qdd) + h - mech.generalized_forces(q, qd, t, params)
     A, _ = constraint_terms(mech, q, qd, t, params)
-    return solve_psd_min_norm(A @ A.T, A @ R)
+    return solve_psd_min_norm(mm(A, A.T), mm(A, R))
 
 
 def as_float(x):

@@ -20,7 +20,7 @@ suits velocity constraints).
 
 from __future__ import annotations
 
-from ..linalg import cholesky, solve_lower, solve_psd_min_norm, solve_upper_t
+from ..linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
 from .base import Formulation
 from .terms import constraint_terms, mass_and_velocity_terms
 
@@ -55,8 +55,8 @@ class Lagrange(Formulation):
             qdd = solve_upper_t(L, u)
             return qdd, (b if multipliers else None)
         W = solve_lower(L, A.T)
-        lam = solve_psd_min_norm(W.T @ W, -b - W.T @ u)
-        qdd = solve_upper_t(L, u + W @ lam)
+        lam = solve_psd_min_norm(mm(W.T, W), -b - mm(W.T, u))
+        qdd = solve_upper_t(L, u + mm(W, lam))
         return qdd, (lam if multipliers else None)
 
     def vector_field(self, t, y, params):

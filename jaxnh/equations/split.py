@@ -78,6 +78,11 @@ def check_split(mech: Mechanism, independent: tuple, q, qd, t, params) -> None:
         )
 
 
+def pick(x, indices):
+    """x[indices] for a static tuple of indices, without a gather."""
+    return jnp.stack([x[i] for i in indices]) if indices else x[:0]
+
+
 def solve_square(A, b):
     """Solve A x = b for a small square, non-symmetric A."""
     if A.shape[0] == 1:
@@ -98,23 +103,32 @@ class VelocitySplit(eqx.Module):
         dep = tuple(i for i in range(s) if i not in ind)
         return cls(mech, ind, dep)
 
+    def independent_of(self, qd):
+        """The independent velocities v (k,) picked out of qd (s,)."""
+        return pick(qd, self.independent)
+
+    def assemble(self, v, x):
+        """qd (s,) from independent v (k,) and dependent x (m,) (static placement)."""
+        parts = [None] * (len(self.independent) + len(self.dependent))
+        for j, i in enumerate(self.independent):
+            parts[i] = v[j]
+        for j, i in enumerate(self.dependent):
+            parts[i] = x[j]
+        return jnp.stack(parts)
+
     def velocities(self, q, v, t, params):
         """All velocities qd (s,) satisfying the constraints, from independent v (k,)."""
-        s = len(self.independent) + len(self.dependent)
-        I, D = jnp.array(self.independent), jnp.array(self.dependent)
-        qd = jnp.zeros((s,), v.dtype).at[I].set(v)
-        if not self.dependent:
-            return qd
+        m = len(self.dependent)
+        x = jnp.zeros((m,), v.dtype)
+        if not m:
+            return self.assemble(v, x)
 
         def c_dep(x):
-            return self.mech.constraint(q, qd.at[D].set(x), t, params)
+            return self.mech.constraint(q, self.assemble(v, x), t, params)
 
-        x = qd[D]
         for _ in range(NEWTON_ITERATIONS if self.mech.nonlinear_constraints else 1):
-            c, jac = jax.linearize(c_dep, x)
-            A_D = jax.vmap(jac, out_axes=1)(jnp.eye(len(self.dependent), dtype=v.dtype))
-            x = x - solve_square(A_D, c)
-        return qd.at[D].set(x)
+            x = x - solve_square(jax.jacfwd(c_dep)(x), c_dep(x))
+        return self.assemble(v, x)
 
     def velocities_and_rates(self, q, v, t, params):
         """qd, B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""

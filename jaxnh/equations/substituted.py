@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..linalg import solve_spd
+from ..linalg import mm, solve_spd
 from .base import Formulation
 from .split import VelocitySplit
 
@@ -31,7 +31,7 @@ class Substituted(Formulation):
     split: VelocitySplit
 
     def state(self, q, qd, t, params):
-        return (q, qd[jnp.array(self.split.independent)])
+        return (q, self.split.independent_of(qd))
 
     def unpack(self, y, t, params):
         q, v = y
@@ -49,10 +49,10 @@ class Substituted(Formulation):
 
         _, dp = jax.jvp(lambda q_, t_: p_star(q_, v, t_), (q, t), (qd, jnp.ones_like(t)))
         M_star = jax.jacfwd(p_star, argnums=1)(q, v, t)
-        dTdq_I = jax.grad(T_star, argnums=0)(q, v, t)[jnp.array(split.independent)]
+        dTdq_I = split.independent_of(jax.grad(T_star, argnums=0)(q, v, t))
         Q = mech.generalized_forces(q, qd, t, params)
-        vd = solve_spd(M_star, B.T @ Q - dp + dTdq_I)
-        return qd, B @ vd + beta, vd
+        vd = solve_spd(M_star, mm(B.T, Q) - dp + dTdq_I)
+        return qd, mm(B, vd) + beta, vd
 
     def accelerations(self, q, qd, t, params, multipliers: bool = False):
         if multipliers:
@@ -60,7 +60,7 @@ class Substituted(Formulation):
                 "method='substituted' has no multipliers: the constraint forces were "
                 "eliminated by substitution (which is what makes the method wrong)."
             )
-        v = qd[jnp.array(self.split.independent)]
+        v = self.split.independent_of(qd)
         _, qdd, _ = self._independent_accelerations(q, v, t, params)
         return qdd, None
 
