@@ -52,7 +52,12 @@ class Mechanism(eqx.Module):
         independent: default indices of the independent velocities for the
             Appell and substituted formulations (else chosen automatically
             from the constraint matrix at the initial state).
-        nonlinear_constraints: whether `c` is nonlinear in `qd`.
+        nonlinear_constraints: whether `c` is nonlinear in `qd`. The Appell
+            formulation then finds the dependent velocities by Newton's method
+            started from zero, so write such constraints linear in the
+            dependent velocities where possible (`qd2 − sqrt(qd0² + qd1²)`
+            rather than `qd0² + qd1² − qd2²`, whose Jacobian vanishes at
+            zero); Chetaev's rule gives the same constraint forces for both.
     """
 
     kinetic: Callable = eqx.field(static=True)

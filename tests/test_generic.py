@@ -151,3 +151,38 @@ def test_singular_split_is_refused():
     q, qd, t = random_state(jax.random.PRNGKey(5))
     with pytest.raises(ValueError, match=r"independent=\(1, 3\).*singular"):
         nh.accelerations(MECH, q, qd, t, P, method="appell", independent=(1, 3))
+
+
+def test_nonlinear_constraint_by_chetaev_conserves_energy_and_formulations_agree():
+    """A point whose speed in the plane is tied to a rotor: qd2 = sqrt(qd0² + qd1²).
+
+    The constraint is homogeneous of degree one in qd, so by Chetaev's rule
+    the constraint force Aᵀλ does power λ A qd = λ c = 0: with conservative
+    forces only, T + V is conserved.
+    """
+    def T(q, qd, t, p):
+        return 0.5 * (1.2 * qd[0] ** 2 + 1.2 * qd[1] ** 2 + 0.3 * qd[2] ** 2)
+
+    def c(q, qd, t, p):
+        return jnp.stack([qd[2] - jnp.sqrt(qd[0] ** 2 + qd[1] ** 2)])
+
+    def V(q, t, p):
+        return 0.5 * (q[0] ** 2 + 2.0 * q[1] ** 2) + 0.2 * jnp.cos(q[2])
+
+    mech = nh.Mechanism(T, constraints=c, potential=V, nonlinear_constraints=True, independent=(0, 1))
+    q0 = jnp.array([1.0, 0.0, 0.0])
+    qd0 = jnp.array([0.3, 0.8, jnp.sqrt(0.73)])
+    ts = jnp.linspace(0.0, 6.0, 61)
+    kw = dict(rtol=1e-12, atol=1e-12, solver=diffrax.Dopri8(), record=("energy", "residual"))
+    a = nh.simulate(mech, None, q0, qd0, ts, method="appell", **kw)
+    l = nh.simulate(mech, None, q0, qd0, ts, method="lagrange", **kw)
+    assert np.max(np.abs(a.q - l.q)) < 1e-9 and np.max(np.abs(a.qd - l.qd)) < 1e-9
+    for sol in (a, l):
+        E = np.asarray(sol.energy)
+        # global error of a rtol=1e-12 solve over 6 s is a few 1e-10; a wrong
+        # constraint force (not along ∂c/∂qd) would change E at order one
+        assert np.max(np.abs(E - E[0])) < 1e-9 * abs(E[0])
+        assert np.max(np.abs(sol.residual)) < 1e-9
+    # the flag is required: the same constraint without it is refused
+    with pytest.raises(ValueError, match="nonlinear_constraints=True"):
+        nh.simulate(nh.Mechanism(T, constraints=c, potential=V), None, q0, qd0, ts)
