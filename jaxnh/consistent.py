@@ -28,6 +28,7 @@ def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3
     t = as_time(t, q)
     if mech.constraints is None:
         return qd
+    mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))  # concrete input only
     M, _ = mass_and_velocity_terms(mech, q, qd, t, params)
     L = cholesky(M)
     for _ in range(iterations if mech.nonlinear_constraints else 1):

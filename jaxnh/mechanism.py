@@ -43,7 +43,7 @@ class Mechanism(eqx.Module):
             (N for lengths, N·m for angles): the virtual work is `Q · δq`.
         potential: potential energy `V(q, t, params) -> scalar`, J.
         holonomic: reserved for holonomic constraints `g(q, t, params) -> (h,)`;
-            not supported by this version (an error is raised if given).
+            use `jaxnh.HolonomicMechanism` for them (an error is raised if given).
         acceleration_energy: Gibbs–Appell acceleration energy
             `S(q, qd, qdd, t, params) -> scalar` (J/s²); used by
             `method="appell"` when given. Only its part that depends on
@@ -79,9 +79,9 @@ class Mechanism(eqx.Module):
                 raise TypeError(f"Mechanism: `{name}` must be a function or None, got {type(f).__name__}")
         if self.holonomic is not None:
             raise NotImplementedError(
-                "Mechanism: `holonomic` constraints are not supported yet; "
-                "eliminate them by choosing independent coordinates, or write them "
-                "as differentiated velocity constraints in `constraints`."
+                "Mechanism: `holonomic` constraints go into jaxnh.HolonomicMechanism(kinetic, holonomic, "
+                "dependent=...), whose .differentiated() (ġ = 0 among the constraints, for 'lagrange') and "
+                ".reduced() (dependent coordinates by Newton, for 'appell') are Mechanisms."
             )
         if self.names is not None and not all(isinstance(n, str) for n in self.names):
             raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
@@ -191,11 +191,18 @@ class Mechanism(eqx.Module):
         M, c, A, H = (np.asarray(x) for x in _initial_state_terms(self, q, qd, t, params))
         if not np.all(np.isfinite(M)):
             raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
+        # Cholesky's accuracy does not depend on the scaling of the coordinates
+        # (van der Sluis), so the test is on the Jacobi-scaled matrix D^-½ M D^-½:
+        # J1/J2 = 1e6 is fine even in float32, a near-singular coupling is not.
+        d = np.diag(M)
         eig = np.linalg.eigvalsh(0.5 * (M + M.T))
-        if eig.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(eig).max(), np.finfo(M.dtype).tiny):
+        scaled = np.linalg.eigvalsh(0.5 * (M + M.T) / np.sqrt(np.outer(np.abs(d), np.abs(d)) + np.finfo(M.dtype).tiny))
+        if np.any(d <= 0) or scaled.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(scaled).max(), np.finfo(M.dtype).tiny):
             raise ValueError(
                 "Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not positive "
-                f"definite (eigenvalues {eig}); expected all eigenvalues > 0. Check the inertia parameters."
+                f"definite, or singular to {M.dtype} precision (eigenvalues {eig}; after scaling to a "
+                f"unit diagonal {scaled}); expected all eigenvalues > 0. Check the inertia parameters"
+                + (", or use float64." if M.dtype == np.float32 else ".")
             )
         if self.constraints is None:
             return

@@ -16,7 +16,7 @@ from .equations.base import as_float
 from .equations.lagrange import Lagrange
 from .consistent import consistent_velocities
 from .mechanism import Mechanism
-from .stabilize import ProjectedSolver, default_baumgarte_rate
+from .stabilize import ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
 __all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver"]
 
@@ -30,6 +30,11 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     non_finite_input = (
         "The initial state, the report times or the parameters contain NaN or inf; "
         "nothing was integrated."
+    )
+    non_finite_output = (
+        "The solve finished but a reported value (coordinates, velocities, multipliers, "
+        "energy or constraint residual) is NaN or inf: an overflow, or a singular "
+        "dependent-velocity block at a report time."
     )
 
 
@@ -81,10 +86,12 @@ class Solution(eqx.Module):
         msg = f"solve failed: {STATUS[self.status]}"
         if self.status == STATUS.max_steps_reached:
             msg += (
-                " If the step count is large because the problem is stiff (strong damping, a very "
-                "steep ratio change, a large Baumgarte rate), use an implicit solver, e.g. "
-                "solver=diffrax.Kvaerno5(); if the state became non-finite (a singular mass matrix "
-                "or dependent-velocity block), check the parameters or use method='lagrange'."
+                " If the step count is large because the problem is stiff (strong damping, a large "
+                "Baumgarte rate), use an implicit solver with a Newton root finder, e.g. "
+                "solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol)) "
+                "(diffrax's default chord iteration rejected most steps of the multiplier form); "
+                "if the state became non-finite (a singular mass matrix or dependent-velocity "
+                "block), check the parameters or use method='lagrange'."
             )
         return msg
 
@@ -132,6 +139,8 @@ def simulate(
     throw: bool = True,
     stabilization: Optional[str] = None,
     baumgarte_rate=None,
+    dtmax=None,
+    step_ts=None,
 ) -> Solution:
     """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
 
@@ -165,6 +174,12 @@ def simulate(
             median report interval) or "projection" (velocities projected
             onto the constraints after every step). See `jaxnh.stabilize`.
         baumgarte_rate: α for "baumgarte", 1/s.
+        dtmax: largest step, s (default: unlimited). An adaptive solver only
+            sees the right-hand side at its stages and can step over a change
+            that is short compared with its step (a steep ratio law): keep
+            dtmax below the width of such a change.
+        step_ts: times at which a step must end, s (e.g. the centre of a
+            known fast change, so that the solver cannot step over it).
 
     Returns:
         A `Solution`.
@@ -207,10 +222,14 @@ def simulate(
 
     solver = default_solver(rtol) if solver is None else solver
     if stabilization == "projection":
-        solver = ProjectedSolver(solver, _velocity_projection(mech))
+        solver = ProjectedSolver(solver, VelocityProjection(mech))
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    controller = diffrax.PIDController(
+        rtol=rtol, atol=atol, dtmax=dtmax,
+        step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
+    )
     ys, result, stats, out = _integrate(
-        form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0, adjoint, throw
+        form, params, y0, ts, solver, controller, record, max_steps, dt0, adjoint, throw
     )
     q, qd = ys
     return Solution(
@@ -227,7 +246,7 @@ def simulate(
 
 
 @eqx.filter_jit
-def _integrate(form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0, adjoint, throw):
+def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0, adjoint, throw):
     """The compiled part of `simulate`: solve, unpack, and the recorded quantities."""
     mech = form.mech
 
@@ -254,7 +273,7 @@ def _integrate(form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0,
         y0=y0_run,
         args=params_run,
         saveat=diffrax.SaveAt(ts=ts_run),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
         throw=throw,
@@ -275,6 +294,11 @@ def _integrate(form, params, y0, ts, solver, rtol, atol, record, max_steps, dt0,
     if stages is not None:
         stats["rhs_evaluations"] = stats["num_steps"] * stages
     result = STATUS.where(finite, STATUS.promote(sol.result), STATUS.non_finite_input)
+    # Never a success with NaN or inf in what is reported.
+    bad_output = (result == STATUS.successful) & ~_all_finite((q, qd, out))
+    result = STATUS.where(bad_output, STATUS.non_finite_output, result)
+    if throw:
+        q = eqx.error_if(q, bad_output, STATUS[STATUS.non_finite_output])
     return (q, qd), result, stats, out
 
 
@@ -285,13 +309,3 @@ def _is_float_array(x) -> bool:
 def _all_finite(tree):
     leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
-
-
-def _velocity_projection(mech):
-    """The "projection" stabiliser's map: (q, qd) → (q, consistent qd)."""
-
-    def project(t, y, params):
-        q, qd = y
-        return (q, consistent_velocities(mech, q, qd, t, params))
-
-    return project

@@ -67,4 +67,7 @@ def accelerations(mech: Mechanism, q, qd, t, params, method: str = "lagrange", i
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
     form = formulation(mech, method, q, qd, t, params, independent)
+    # concrete input: non-finite values or a mass matrix that is not positive
+    # definite raise here instead of returning NaN (qd need not be consistent)
+    mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))
     return form.accelerations(q, qd, t, params, multipliers=method != "substituted")

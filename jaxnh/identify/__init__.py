@@ -1,0 +1,27 @@
+"""Parameter identification: fit a mechanism's parameters to measured motion.
+
+* `fit(mech, params, record, free=..., positive=...)` — least squares of the
+  simulated against the measured coordinates, with the Jacobian from forward
+  differentiation through the ODE solver; Levenberg–Marquardt (optimistix)
+  or an optax optimiser; optional multiple shooting. Returns a `FitResult`:
+  estimates with standard errors (Gauss–Newton covariance scaled by the
+  residual variance), bands of derived quantities (`result.band`,
+  `result.profile_band("U21", ts)`), residual statistics, convergence, and
+  an identifiability report that names undetermined combinations.
+* `Record`, `read_csv`, `load_default`, `noise_level` — measured data.
+* `prepare`, `Problem`, `solve_least_squares`, `statistics` — the pure-JAX
+  core, for batched fits under `jax.vmap`.
+* `variator` — the friction variator: `fit_variator(record)`, `report(result)`.
+"""
+
+from . import variator
+from .data import MIN_SAMPLES, Record, load_default, noise_level, read_csv, write_csv
+from .diagnostics import Identifiability
+from .fit import FitResult, fit, prepare
+from .problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
+
+__all__ = [
+    "fit", "FitResult", "prepare", "Record", "read_csv", "write_csv", "load_default", "noise_level",
+    "MIN_SAMPLES", "Identifiability", "Observations", "Problem", "solve_least_squares", "statistics",
+    "value_and_jacobian", "variator",
+]

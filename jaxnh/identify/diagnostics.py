@@ -1,0 +1,123 @@
+"""Identifiability: what the data determine, said in words.
+
+From the singular values of the column-scaled Jacobian (`statistics`), a
+direction in θ along which the residuals do not change (relative singular
+value below the rank tolerance) is a combination of parameters the data
+cannot determine. For logarithmic entries a direction (a, b) in
+(log J1, log J2) means "multiply J1 by c^a and J2 by c^b": with a = b the
+data determine only the ratio J1/J2, which is what happens for the variator
+when no torque acts (eq. 9 is then homogeneous in J1, J2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["Identifiability", "analyse"]
+
+SHOW_COMPONENT = 0.05  # components of a direction smaller than this (relative) are not named
+POOR_RELATIVE_STD = 0.5  # a positive parameter known only to ±50 % (1σ) is called poorly determined
+
+
+@dataclasses.dataclass
+class Identifiability:
+    """What the data determine.
+
+    Attributes:
+        identifiable: False when some combination of the free parameters is
+            not determined by the data (its standard errors are infinite).
+        condition: ratio of the largest to the smallest singular value of the
+            column-scaled Jacobian (inf when rank deficient).
+        singular_values: relative singular values, descending.
+        undetermined: one entry per undetermined direction: a dict with
+            `direction` {label: coefficient} (coefficients of log-parameters
+            for positive ones), `singular_value`, `message`, and `identifiable`
+            (a combination the data do determine, when one can be named).
+        poorly_determined: labels of parameters whose relative standard
+            error exceeds 50 %.
+        messages: plain-language statements, for printing.
+    """
+
+    identifiable: bool
+    condition: float
+    singular_values: np.ndarray
+    undetermined: list
+    poorly_determined: list
+    messages: list
+
+
+def _fmt_power(x: float) -> str:
+    return "" if abs(x - 1) < 0.05 else f"^{x:.2g}"
+
+
+def analyse(stats: dict, labels, log_mask, rank_tol: float) -> Identifiability:
+    """Turn `statistics(J, r)` (NumPy values) into an `Identifiability` report.
+
+    Arguments:
+        stats: output of `problem.statistics` (standard errors of θ itself,
+            i.e. relative ones for the logarithmic entries).
+        labels: label of every entry of θ.
+        log_mask: which entries of θ are logarithms of positive parameters.
+        rank_tol: the relative singular value below which a direction is undetermined.
+    """
+    sv = np.asarray(stats["sv"])
+    Vt = np.asarray(stats["Vt"])
+    c = np.asarray(stats["colnorm"])
+    std = np.asarray(stats["std"])
+    log_mask = np.asarray(log_mask)
+    messages, undetermined = [], []
+    dead = [labels[j] for j in range(len(labels)) if c[j] == 0]
+    if dead:
+        messages.append(f"{', '.join(dead)} do(es) not affect the observed channels at all: not identifiable from these data.")
+    for i in np.nonzero(~(sv > rank_tol))[0]:
+        d = Vt[i] / np.where(c > 0, c, 1.0)  # direction in θ (log units for positive parameters)
+        d = d / np.max(np.abs(d))
+        if d[np.argmax(np.abs(d))] < 0:
+            d = -d
+        comp = {labels[j]: float(d[j]) for j in np.argsort(-np.abs(d)) if abs(d[j]) >= SHOW_COMPONENT and c[j] > 0}
+        if not comp:
+            continue
+        parts = []
+        for lab, a in comp.items():
+            j = labels.index(lab)
+            parts.append(f"{'log ' if log_mask[j] else ''}{lab} by {a:+.2f}·ε")
+        entry = {"direction": comp, "singular_value": float(sv[i]), "identifiable": None}
+        names = list(comp)
+        all_log = all(log_mask[labels.index(n)] for n in names)
+        coeff = [comp[n] for n in names]
+        if all_log and len(names) >= 2 and all(a > 0 for a in coeff) and np.ptp(coeff) < 0.05:
+            what = f"scaling {', '.join(names[:-1])} and {names[-1]} by the same factor"
+        else:
+            what = "changing " + ", ".join(parts)
+        if len(names) == 2 and all_log:
+            a, b = coeff
+            if a * b > 0:  # θ1^b / θ2^a is invariant
+                ratio = f"{names[0]}{_fmt_power(b / a)}/{names[1]}" if abs(b / a - 1) >= 0.05 else f"{names[0]}/{names[1]}"
+                entry["identifiable"] = ratio
+            else:
+                entry["identifiable"] = f"{names[0]}{_fmt_power(-b / a)}·{names[1]}"
+        elif len(names) == 2:
+            a, b = coeff
+            entry["identifiable"] = f"{b:+.3g}·{names[0]} {-a:+.3g}·{names[1]}"
+        msg = (f"NOT IDENTIFIABLE: {what} leaves the simulated channels unchanged "
+               f"(relative singular value {sv[i]:.1e}); the data do not determine "
+               f"{' and '.join(names) if len(names) <= 3 else 'these parameters'} separately")
+        msg += f" — only {entry['identifiable']} is determined." if entry["identifiable"] else \
+            " — only combinations orthogonal to this direction are determined."
+        entry["message"] = msg
+        undetermined.append(entry)
+        messages.append(msg)
+    poor = []
+    for j, lab in enumerate(labels):
+        if not np.isfinite(std[j]):
+            continue
+        if log_mask[j] and std[j] > POOR_RELATIVE_STD:  # std of log θ = relative standard error
+            poor.append(lab)
+    if poor:
+        messages.append(f"Poorly determined (relative standard error > {POOR_RELATIVE_STD:.0%}): {', '.join(poor)}.")
+    identifiable = not undetermined and not dead
+    positive = sv[sv > 0]
+    condition = float(1.0 / np.min(sv)) if identifiable and positive.size == sv.size else float("inf")
+    return Identifiability(identifiable, condition, sv, undetermined, poor, messages)

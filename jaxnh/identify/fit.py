@@ -1,0 +1,564 @@
+"""`fit`: estimate parameters of a mechanism from a measured record.
+
+Least squares of simulated against measured coordinates, with gradients
+through the ODE solver, then the Gauss–Newton covariance scaled by the
+residual variance, and an identifiability check that says in words which
+combinations the data cannot determine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings
+from typing import Any, Optional, Sequence
+
+import equinox as eqx
+import jax
+import optimistix as optx
+import jax.numpy as jnp
+import numpy as np
+
+from ..equations.split import choose_independent
+from ..mechanism import Mechanism
+from .data import Record, noise_level
+from .diagnostics import Identifiability, analyse
+from .parameters import Parametrisation, resolve
+from .problem import (FAILED_RESIDUAL, Observations, Problem, _Progress, solve_least_squares, statistics,
+                      value_and_jacobian)
+
+__all__ = ["fit", "prepare", "FitResult", "OPTIMIZERS", "GN_STEP_TOL", "FORWARD_MAX_UNKNOWNS"]
+
+OPTIMIZERS = ("levenberg-marquardt",)
+GN_STEP_TOL = 0.1  # converged: the remaining Gauss–Newton step is below 0.1 standard errors ...
+STEP_RTOL = 1e-9  # ... or below 1e-9 of every unknown (data fitted to rounding: noise-free records)
+FORWARD_MAX_UNKNOWNS = 32  # optax: forward-mode gradients up to this many unknowns, reverse above
+RATE_WINDOW = 15  # samples used to estimate a starting velocity from the data
+
+
+@dataclasses.dataclass
+class FitResult:
+    """The outcome of `fit`.
+
+    Attributes:
+        params: the fitted params pytree (same structure as the starting one).
+        q0, qd0: fitted initial coordinates and velocities (s,) at t[0].
+        estimates: {name: {"value", "std"}} for every free parameter (scalars
+            as floats, profiles' trainable values as arrays) and for the
+            fitted initial state (entries like "phi1(t0)", "phi1'(t0)").
+            Units are those of the parameter; `std` is the standard error
+            (inf when the data do not determine it).
+        labels, values, std: the same, flat, one entry per unknown.
+        covariance: covariance of `values` (natural units; linearised for
+            log-parametrised ones), scaled by the residual variance.
+        converged: the optimiser stopped on its tolerances and the remaining
+            Gauss–Newton step is below `GN_STEP_TOL` standard errors (or, for
+            data fitted to rounding level, below `STEP_RTOL` of every unknown).
+        iterations: optimiser iterations.
+        message: why it stopped, in words.
+        rms_residual: root mean square of measured − fitted over all observed
+            samples, units of the channels (rad).
+        rms_by_channel: the same per channel.
+        noise: noise standard deviation used to weight each channel (given or
+            estimated from the data).
+        chi2_dof: weighted residual variance s² (≈ 1 when the noise levels
+            are right and the model fits).
+        identifiability: the `Identifiability` report.
+        t, observe, measured, fitted, residuals: sample times (n,), observed
+            channel names, and (n, k) arrays of data, fit and data − fit.
+        gn_step: remaining Gauss–Newton step, in standard errors.
+        optimizer, differentiation, shooting, elapsed: how it was done, and the
+            wall time in seconds.
+    """
+
+    params: Any
+    q0: np.ndarray
+    qd0: np.ndarray
+    estimates: dict
+    labels: tuple
+    values: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    converged: bool
+    iterations: int
+    message: str
+    rms_residual: float
+    rms_by_channel: dict
+    noise: dict
+    chi2_dof: float
+    identifiability: Identifiability
+    t: np.ndarray
+    observe: tuple
+    measured: np.ndarray
+    fitted: np.ndarray
+    residuals: np.ndarray
+    gn_step: float
+    optimizer: str
+    differentiation: str
+    shooting: int
+    elapsed: float
+    problem: Problem = dataclasses.field(repr=False)
+    theta: np.ndarray = dataclasses.field(repr=False)
+    cov_theta: np.ndarray = dataclasses.field(repr=False)
+    null_directions: np.ndarray = dataclasses.field(repr=False)
+
+    @property
+    def identifiable(self) -> bool:
+        """Whether the data determine every free parameter."""
+        return self.identifiability.identifiable
+
+    def band(self, fn, ts):
+        """Value and standard error of a derived quantity `fn(params, t)` at times ts.
+
+        The standard error is the linearised (delta-method) propagation of
+        the covariance; it is inf where `fn` depends on a combination the
+        data do not determine. Example: `result.band(lambda p, t: p.U21(t), ts)`
+        (pass the same function object again to reuse its compilation).
+
+        Returns:
+            `(value, std)`, NumPy arrays like ts.
+        """
+        ts = jnp.asarray(ts, dtype=jnp.result_type(float))
+        P = self.problem.par.size
+        val, G = (np.asarray(x) for x in _band_jacobian(self.problem.par, jnp.asarray(self.theta[:P]),
+                                                        ts.reshape(-1), fn))
+        C = self.cov_theta[:P, :P]
+        std = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
+        if self.null_directions.size:
+            leak = np.abs(G @ self.null_directions[:, :P].T)
+            scale = np.maximum(np.abs(G).sum(axis=1), np.finfo(float).tiny)
+            std = np.where(np.any(leak > 1e-6 * scale[:, None], axis=1), np.inf, std)
+        return val.reshape(np.shape(ts)), std.reshape(np.shape(ts))
+
+    def profile_band(self, name: str, ts):
+        """Value and standard error of the free profile `name` (e.g. "U21") at times ts."""
+        return self.band(_ProfileAt(name), ts)
+
+    def summary(self) -> str:
+        """A table of estimates ± standard errors and the residual statistics."""
+        lines = [f"{'parameter':<16}{'estimate':>14}{'std error':>12}{'rel.':>9}"]
+        for lab, v, s in zip(self.labels, self.values, self.std):
+            rel = f"{s / abs(v):8.2%}" if v != 0 and np.isfinite(s) else "     n/a"
+            lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
+        lines.append(f"rms residual {self.rms_residual:.4g} ("
+                     + ", ".join(f"{k} {v:.3g}" for k, v in self.rms_by_channel.items())
+                     + f"); noise used " + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
+                     + f"; s² = {self.chi2_dof:.3f}")
+        lines.append(f"{self.optimizer}: {self.iterations} iterations, "
+                     f"{'converged' if self.converged else 'NOT converged'} — {self.message}")
+        lines += self.identifiability.messages
+        return "\n".join(lines)
+
+
+class _ProfileAt(eqx.Module):
+    """`params ↦ profile name at t`, hashable by name (so its band compiles once)."""
+
+    name: str = eqx.field(static=True)
+
+    def __call__(self, params, t):
+        return resolve(params, self.name)(t)
+
+
+@eqx.filter_jit
+def _band_jacobian(par, theta, ts, fn):
+    def g(th):
+        p = par.unpack(th)
+        return jax.vmap(lambda t: fn(p, t))(ts)
+
+    return g(theta), jax.jacfwd(g)(theta)
+
+
+def _as_list(x):
+    return (x,) if isinstance(x, str) else tuple(x)
+
+
+def _local_rates(t, y, i0, window=RATE_WINDOW):
+    """Value and slope of each column of y at sample i0 from a local quadratic fit."""
+    n = t.shape[0]
+    lo = max(0, min(i0 - window // 2, n - window))
+    sl = slice(lo, min(n, lo + window))
+    tt = t[sl] - t[i0]
+    V = np.stack([np.ones_like(tt), tt, tt**2], axis=1)
+    coef, *_ = np.linalg.lstsq(V, y[sl], rcond=None)
+    return coef[0], coef[1]
+
+
+@eqx.filter_jit
+def _velocity_map(problem: Problem, q, t, params):
+    """b, B with observed velocities = B v + b for independent velocities v."""
+    def f(v):
+        return problem.split().velocities(q, v, t, params)[jnp.asarray(problem.observed)]
+
+    v0 = jnp.zeros(len(problem.independent), q.dtype)
+    return f(v0), jax.jacfwd(f)(v0)
+
+
+@eqx.filter_jit
+def _trajectory(problem: Problem, theta, t):
+    return problem.trajectory(theta, t)
+
+
+def _independent_from_rates(problem: Problem, q, rates, t, params):
+    """Independent velocities whose constraint-consistent qd best match observed rates."""
+    b, B = (np.asarray(x) for x in _velocity_map(problem, q, jnp.asarray(t, q.dtype), params))
+    v, *_ = np.linalg.lstsq(B, np.asarray(rates) - b, rcond=None)
+    return v
+
+
+def prepare(
+    mech: Mechanism, params, data: Record, *, free: Sequence[str], positive: Sequence[str] = (),
+    observe: Optional[Sequence[str]] = None, noise=None, q0=None, qd0=None, method: str = "appell",
+    solver=None, rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 100_000,
+    shooting: int = 1, differentiation: str = "forward", defect_weight: float = 10.0,
+):
+    """Set up the least-squares problem without solving it.
+
+    Takes the same arguments as `fit` (see there). Returns
+    `(problem, theta0, observations, names)`: the `Problem` (a pytree), the
+    starting vector θ0, the `Observations` (times, data, noise levels) and
+    the coordinate names. `problem.residuals(theta0, observations)` works
+    under `jit`/`vmap`, so many records of the same shape can be fitted in a
+    batch with `jax.vmap(solve_least_squares, in_axes=(None, 0, 0))`.
+    """
+    if not isinstance(mech, Mechanism):
+        raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
+    if not isinstance(data, Record):
+        raise TypeError(f"data must be a jaxnh.identify.Record (e.g. from read_csv); got {type(data).__name__}")
+    if differentiation not in ("forward", "reverse"):
+        raise ValueError(f"differentiation must be 'forward' or 'reverse'; got {differentiation!r}")
+    if q0 is not None:
+        s = int(np.shape(q0)[0])
+    elif mech.names is not None:
+        s = len(mech.names)
+    else:
+        raise ValueError("q0: the mechanism has no coordinate names, so pass q0 (s,) to give the number of coordinates")
+    names = mech.coordinate_names(s)
+    observe = tuple(c for c in names if c in data.channels) if observe is None else _as_list(observe)
+    if not observe:
+        raise ValueError(f"observe: none of the coordinates {names} is a channel of the record ({list(data.channels)})")
+    for c in observe:
+        if c not in names:
+            raise ValueError(f"observe: {c!r} is not a coordinate of the mechanism; coordinates are {names}")
+    y = data.observed(observe)
+    n = data.n
+    sigma = _noise(noise, observe, y)
+    par = Parametrisation(params, free, positive)
+    params = par.params
+    f = jnp.result_type(float)
+    t0 = float(data.t[0])
+    q0_fixed = np.zeros(s) if q0 is None else np.asarray(q0, dtype=float)
+    if q0_fixed.shape != (s,):
+        raise ValueError(f"q0 must have shape ({s},); got {q0_fixed.shape}")
+    if not isinstance(shooting, (int, np.integer)) or shooting < 1:
+        raise ValueError(f"shooting must be a positive integer (number of segments); got {shooting!r}")
+    independent = mech.independent
+    if independent is None:
+        qd_guess = np.zeros(s) if qd0 is None else np.asarray(qd0, dtype=float)
+        independent = choose_independent(mech, jnp.asarray(q0_fixed), jnp.asarray(qd_guess), t0, params)
+    observed = tuple(names.index(c) for c in observe)
+    if shooting == 1:
+        starts, length = (0,), n
+    else:
+        length = math.ceil((n - 1) / shooting) + 1
+        starts = tuple(k * (length - 1) for k in range(shooting - 1)) + (n - length,)
+        if length < 2 * RATE_WINDOW or any(b <= a for a, b in zip(starts, starts[1:])):
+            raise ValueError(f"shooting={shooting}: segments of {length} samples are too short for a record "
+                             f"of {n} samples; use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments")
+    problem = Problem(
+        mech=mech, par=par, q0_fixed=jnp.asarray(q0_fixed, f), observed=observed, independent=tuple(independent),
+        starts=starts, length=length, method=method, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
+        differentiation=differentiation, defect_weight=defect_weight,
+    )
+    # starting initial state: data at t0 for the observed coordinates, rates from a local fit
+    q_start, rates = _local_rates(data.t, y, 0)
+    q_init = q0_fixed.copy()
+    q_init[list(observed)] = y[0] if q0 is None else q0_fixed[list(observed)]
+    if qd0 is not None:
+        v0 = np.asarray(qd0, dtype=float)[list(problem.independent)]
+    else:
+        v0 = _independent_from_rates(problem, jnp.asarray(q_init, f), rates, t0, params)
+    theta0 = [np.asarray(par.pack()), q_init[list(observed)], v0]
+    if shooting > 1:
+        th = jnp.concatenate([jnp.asarray(x, f) for x in theta0])
+        single = dataclasses.replace(problem, starts=(0,), length=n)
+        q_guess = np.asarray(_trajectory(single, th, jnp.asarray(data.t, f)))
+        for st in starts[1:]:
+            q_seg = q_guess[st].copy()
+            val, rate = _local_rates(data.t, y, st)
+            q_seg[list(observed)] = val
+            v_seg = _independent_from_rates(problem, jnp.asarray(q_seg, f), rate, float(data.t[st]), params)
+            theta0 += [q_seg, v_seg]
+    theta0 = jnp.concatenate([jnp.asarray(x, f).reshape(-1) for x in theta0])
+    obs = Observations(jnp.asarray(data.t, f), jnp.asarray(y, f), jnp.asarray(sigma, f))
+    return problem, theta0, obs, names
+
+
+def _noise(noise, observe, y):
+    if noise is None:
+        sigma = np.asarray(noise_level(jnp.asarray(y)))
+        if not np.all(sigma > 0):
+            zero = [c for c, s in zip(observe, sigma) if not s > 0]
+            raise ValueError(f"noise=None: the noise level estimated from the data is zero for {zero} "
+                             "(noise-free data?); pass noise= with the measurement standard deviation")
+        return sigma
+    if isinstance(noise, dict):
+        missing = [c for c in observe if c not in noise]
+        if missing:
+            raise ValueError(f"noise: no standard deviation given for observed channel(s) {missing}")
+        sigma = np.asarray([float(noise[c]) for c in observe])
+    else:
+        sigma = np.broadcast_to(np.asarray(noise, dtype=float), (len(observe),)).copy()
+    if not np.all(np.isfinite(sigma) & (sigma > 0)):
+        raise ValueError(f"noise: standard deviations must be finite and > 0; got {dict(zip(observe, sigma))}")
+    return sigma
+
+
+def fit(
+    mech: Mechanism,
+    params,
+    data: Record,
+    *,
+    free: Sequence[str],
+    positive: Sequence[str] = (),
+    observe: Optional[Sequence[str]] = None,
+    noise=None,
+    q0=None,
+    qd0=None,
+    method: str = "appell",
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    optimizer="levenberg-marquardt",
+    tol: float = 1e-8,
+    max_iterations: int = 100,
+    shooting: int = 1,
+    differentiation: str = "auto",
+    rank_tol: float = 1e-8,
+    progress: bool = False,
+) -> FitResult:
+    """Estimate the free parameters of `mech` and its initial state from a record.
+
+    Minimises `Σ_channels Σ_samples ((q_sim − y) / sigma)²` over the free
+    parameters and the initial state, simulating with `jaxnh.simulate`.
+
+    Arguments:
+        mech: the `Mechanism`.
+        params: starting params pytree; the free parameters' values are the
+            starting guess, everything else is held fixed (torques from the
+            record must already be in it, e.g. as `profiles.Sampled`).
+        data: the measured `Record`.
+        free: names (paths) of the parameters to estimate, e.g.
+            `("J1", "J2", "U21")`; a profile contributes its trainable values.
+        positive: the subset of `free` kept positive by estimating logarithms
+            (inertias, ratios). Their standard errors are then relative ones.
+        observe: coordinate names to fit (default: every coordinate the record
+            has), e.g. `("phi1",)` for one encoder.
+        noise: measurement standard deviation per channel (a dict by name, or
+            one number), units of the channel; default: estimated from the
+            data (`noise_level`). The covariance is scaled by the residual
+            variance either way.
+        q0, qd0: starting guesses of the initial coordinates and velocities
+            (s,). The initial positions of observed coordinates and the
+            independent velocities are always estimated; unobserved positions
+            are held at q0 (default 0).
+        method, solver, rtol, atol, max_steps: passed to `simulate`.
+        optimizer: "levenberg-marquardt" (optimistix, default) or an optax
+            `GradientTransformation` (e.g. `optax.adam(1e-2)`), which works on
+            θ (log-parameters for positive ones).
+        tol: relative and absolute tolerance of the optimiser's termination.
+        max_iterations: iteration limit.
+        shooting: number of segments for multiple shooting (1 = single
+            shooting). With more, the record is cut into segments whose
+            initial states are estimated too, with continuity enforced by
+            penalties; this tolerates long records and poor starting guesses.
+            The answer is then polished by single shooting, from which the
+            statistics come.
+        differentiation: "forward" (Jacobian by forward mode through the
+            solver), "reverse" (adjoint; optax only), or "auto":
+            Levenberg–Marquardt always uses forward mode (it needs the full
+            Jacobian of thousands of residuals by tens of unknowns); optax
+            uses forward mode up to `FORWARD_MAX_UNKNOWNS` unknowns.
+        rank_tol: relative singular value of the column-scaled Jacobian below
+            which a direction counts as undetermined by the data.
+        progress: print one line per iteration (iteration, loss, step).
+
+    Returns:
+        A `FitResult`.
+    """
+    started = time.perf_counter()
+    lm = isinstance(optimizer, str)
+    if lm and optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {optimizer!r}")
+    if not lm and not hasattr(optimizer, "update"):
+        raise TypeError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {type(optimizer).__name__}")
+    if differentiation not in ("auto", "forward", "reverse"):
+        raise ValueError(f"differentiation must be 'auto', 'forward' or 'reverse'; got {differentiation!r}")
+    if lm and differentiation == "reverse":
+        raise ValueError("differentiation='reverse' is not available with Levenberg–Marquardt, which needs the "
+                         "Jacobian of every residual (forward mode); use an optax optimizer for reverse mode")
+    kw = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0, method=method,
+              solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
+    iterations = 0
+    theta_ms = None
+    if shooting > 1:
+        problem, theta0, obs, names = prepare(mech, params, data, shooting=shooting, **kw)
+        if progress:
+            print(f"multiple shooting: {shooting} segments, {problem.size} unknowns")
+        out = solve_least_squares(problem, theta0, obs, tol=max(tol, 1e-6), max_steps=max_iterations,
+                                  progress=_progress(problem, names, obs) if progress else None)
+        iterations += int(out["steps"])
+        theta_ms = np.asarray(out["theta"])[: problem.n_params + problem.n_initial]
+    problem, theta0, obs, names = prepare(mech, params, data, **kw)
+    if differentiation == "auto":
+        differentiation = "forward" if lm or problem.size <= FORWARD_MAX_UNKNOWNS else "reverse"
+    problem = dataclasses.replace(problem, differentiation=differentiation)
+    if theta_ms is not None:
+        theta0 = jnp.asarray(theta_ms)
+    if progress:
+        print(f"{'Levenberg–Marquardt' if lm else 'optax'} on {problem.size} unknowns, {obs.y.size} residuals "
+              f"({', '.join(problem.labels(names)[:6])}{', …' if problem.size > 6 else ''})")
+    if lm:
+        out = solve_least_squares(problem, theta0, obs, tol=tol, max_steps=max_iterations,
+                                  progress=_progress(problem, names, obs) if progress else None)
+        theta, r, J = out["theta"], out["r"], out["J"]
+        iterations += int(out["steps"])
+        code = int(out["result"])
+        stopped = code == 0
+        why = "stopped on its tolerances" if stopped else (
+            f"iteration limit ({max_iterations}) reached" if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
+            else f"optimistix stopped: {_optx_message(code)}")
+        opt_name = "levenberg-marquardt"
+    else:
+        theta, r, J, its, stopped = _optax_loop(problem, optimizer, theta0, obs, tol, max_iterations, progress)
+        iterations += its
+        if J is None:
+            r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
+        why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
+        opt_name = "optax"
+    return _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, opt_name,
+                   differentiation, shooting, time.perf_counter() - started)
+
+
+def _optx_message(code: int) -> str:
+    for name in ("nonlinear_divergence", "nonfinite"):
+        if code == int(getattr(optx.RESULTS, name)._value):
+            return name.replace("_", " ")
+    return f"result code {code}"
+
+
+def _progress(problem, names, obs):
+    labels = problem.par.labels
+    show = tuple(i for i, lab in enumerate(labels) if "[" not in lab)[:3]
+    log = problem.par.log_mask()
+    return _Progress(tuple(labels[i] for i in show), tuple(bool(log[i]) for i in show), int(obs.y.size))
+
+
+@eqx.filter_jit
+def _optax_update(optimizer, theta, state, g):
+    updates, state = optimizer.update(g, state, theta)
+    return theta + updates, state
+
+
+@eqx.filter_jit
+def _loss_and_grad_reverse(problem, theta, obs):
+    def loss(th):
+        res = problem.residuals(th, obs)
+        return 0.5 * jnp.dot(res, res), res
+
+    (_, r), g = jax.value_and_grad(loss, has_aux=True)(theta)
+    return r, g
+
+
+def _optax_step(problem, optimizer, theta, state, obs):
+    """One optax update; also returns the loss, residuals and (forward mode) Jacobian at θ.
+
+    In forward mode the gradient of ½|r|² is Jᵀ r from `value_and_jacobian`
+    (compiled once per problem and shared with the final statistics); in
+    reverse mode it comes from an adjoint pass and J is None.
+    """
+    if problem.differentiation == "forward":
+        r, J = value_and_jacobian(problem, theta, obs)
+        g = J.T @ r
+    else:
+        r, g = _loss_and_grad_reverse(problem, theta, obs)
+        J = None
+    new, state = _optax_update(optimizer, theta, state, g)
+    return new, state, 0.5 * jnp.dot(r, r), r, J
+
+
+def _optax_loop(problem, optimizer, theta, obs, tol, max_iterations, progress, patience: int = 10):
+    """Plain optax iterations; stop when the loss changed by less than tol (relative) over `patience` steps.
+
+    Returns the best θ seen, with its residuals and Jacobian (None in reverse mode),
+    the number of iterations and whether the loss stopped changing.
+    """
+    state = optimizer.init(theta)
+    history, best = [], (np.inf, theta, None, None)
+    stopped, k = False, 0
+    for k in range(1, max_iterations + 1):
+        new, state, value, r, J = _optax_step(problem, optimizer, theta, state, obs)
+        value = float(value)
+        history.append(value)
+        if value < best[0]:
+            best = (value, theta, r, J)
+        if progress:
+            print(f"  iter {k - 1:3d}  loss {value:12.6e}  rms {np.sqrt(2 * value / r.size):9.4g}  "
+                  f"step {float(jnp.max(jnp.abs(new - theta))):8.2e}", flush=True)
+        theta = new
+        if len(history) > patience and abs(history[-1 - patience] - value) <= tol * max(abs(value), 1e-300):
+            stopped = True
+            break
+    return best[1], best[2], best[3], k, stopped
+
+
+def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, optimizer, differentiation,
+            shooting, elapsed) -> FitResult:
+    stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
+    par = problem.par
+    labels = problem.labels(names)
+    log = np.concatenate([par.log_mask(), np.zeros(problem.size - par.size, bool)])
+    theta = np.asarray(theta)
+    values = np.where(log, np.exp(theta), theta)
+    D = np.where(log, values, 1.0)
+    cov_theta = stats["cov"]
+    std = np.where(np.isfinite(stats["std"]), stats["std"] * D, np.inf)
+    covariance = cov_theta * np.outer(D, D)
+    ident = analyse(stats, labels, log, rank_tol)
+    null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
+    params = par.unpack(jnp.asarray(theta[:par.size]))
+    q0, qd0 = (np.asarray(x) for x in problem.initial_state(jnp.asarray(theta), obs.t[0], params))
+    n, k = obs.y.shape
+    sigma = np.asarray(obs.sigma)
+    weighted = np.asarray(r)[: n * k].reshape(n, k)
+    failed = bool(np.any(weighted == FAILED_RESIDUAL))
+    fitted = np.asarray(obs.y) + weighted * sigma
+    res = np.asarray(obs.y) - fitted
+    observe = tuple(names[i] for i in problem.observed)
+    gn = float(stats["gn_step"])
+    tiny = bool(np.all(np.abs(stats["gn_delta"]) <= STEP_RTOL * (1 + np.abs(theta))))
+    converged = bool(stopped and (gn < GN_STEP_TOL or tiny) and not failed)
+    message = why + (f"; remaining Gauss–Newton step {gn:.2g} standard errors" if not tiny or gn < GN_STEP_TOL
+                     else "; remaining Gauss–Newton step below 1e-9 of every unknown (residuals at rounding level)")
+    if failed:
+        message += "; THE SIMULATION FAILED at the final parameters (see jaxnh.simulate's status)"
+    estimates = {}
+    for name, sl in par.slices().items():
+        v, s = values[sl], std[sl]
+        scalar = par.shapes[par.names.index(name)] == ((),)
+        estimates[name] = {"value": float(v[0]) if scalar else v, "std": float(s[0]) if scalar else s}
+    for j in range(par.size, problem.size):
+        estimates[labels[j]] = {"value": float(values[j]), "std": float(std[j])}
+    if not ident.identifiable:
+        warnings.warn("jaxnh.fit: " + " ".join(ident.messages), stacklevel=3)
+    return FitResult(
+        params=params, q0=q0, qd0=qd0, estimates=estimates, labels=labels, values=values, std=std,
+        covariance=covariance, converged=converged, iterations=iterations, message=message,
+        rms_residual=float(np.sqrt(np.mean(res**2))),
+        rms_by_channel={c: float(np.sqrt(np.mean(res[:, i] ** 2))) for i, c in enumerate(observe)},
+        noise={c: float(s) for c, s in zip(observe, sigma)}, chi2_dof=float(stats["s2"]), identifiability=ident,
+        t=np.asarray(obs.t), observe=observe, measured=np.asarray(obs.y), fitted=fitted, residuals=res,
+        gn_step=gn, optimizer=optimizer, differentiation=differentiation, shooting=shooting, elapsed=elapsed,
+        problem=problem, theta=theta, cov_theta=cov_theta, null_directions=null,
+    )

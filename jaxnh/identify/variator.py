@@ -1,0 +1,177 @@
+"""Identification of the friction variator: J1, J2 and the ratio law U21(t).
+
+The record supplies the encoder angles phi1, phi2 (rad) and the torques
+M1, M2 (N·m); the torques become `profiles.Sampled` inputs, U21(t) a
+`profiles.CubicSpline` on a uniform knot grid over the record, and J1, J2 and
+the spline values are estimated as positive quantities (logarithms).
+
+The starting guess, when not given, comes from the data by the equation-error
+method: smoothed rates and accelerations (Savitzky–Golay) give U21 ≈ phi2'/phi1'
+at the knots, and eq. (9), `(J1 + J2 U²) phi1'' + J2 U U' phi1' = M1 + U M2`,
+is linear in J1 and J2, so ordinary least squares gives them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import jax
+import jax.numpy as jnp
+
+from ..models import variator as V
+from ..profiles import CubicSpline, Sampled
+from .data import Record
+from .fit import FitResult, fit
+
+__all__ = ["FREE", "DEFAULT_KNOTS", "params_for", "ratio_knots", "starting_guess", "fit_variator", "report"]
+
+FREE = ("J1", "J2", "U21")
+DEFAULT_KNOTS = 7
+SMOOTHING_WINDOW = 0.12  # s, Savitzky–Golay window for the starting guess
+
+
+def params_for(record: Record, J1, J2, U21) -> V.VariatorParams:
+    """Variator params with the record's torques M1, M2 as `Sampled` inputs (N·m).
+
+    A missing torque column counts as zero torque.
+    """
+    t = record.t
+    M = {k: Sampled(t, record.inputs[k]) if k in record.inputs else 0.0 for k in ("M1", "M2")}
+    return V.VariatorParams(J1, J2, U21, M["M1"], M["M2"])
+
+
+def ratio_knots(record: Record, n_knots: int = DEFAULT_KNOTS) -> np.ndarray:
+    """A uniform grid of `n_knots` knot times (s) spanning the record."""
+    if int(n_knots) != n_knots or n_knots < 2:
+        raise ValueError(f"knots: need an integer number of knots ≥ 2; got {n_knots!r}")
+    return np.linspace(record.t[0], record.t[-1], int(n_knots))
+
+
+def _spline_basis(knots, t):
+    """Matrix (len(t), len(knots)) of the natural spline's values: it is linear in the knot values."""
+    E = jnp.eye(len(knots))
+    return np.asarray(jax.vmap(lambda e: jax.vmap(CubicSpline(knots, e))(jnp.asarray(t)))(E)).T
+
+
+def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
+    """Starting J1, J2 (kg·m²) and U21 spline from the data by the equation-error method.
+
+    Needs the torques; with only one encoder, U21 starts at 1. Falls back to
+    equal shares of one effective inertia when least squares gives a
+    non-positive value.
+
+    Returns:
+        `(J1, J2, U21)` with U21 a `CubicSpline` on `knots`.
+    """
+    from scipy.signal import savgol_filter
+
+    t = record.t
+    dt = float(np.median(np.diff(t)))
+    win = max(7, int(round(SMOOTHING_WINDOW / dt)) | 1)  # odd window of about 0.12 s
+    if win > len(t):
+        win = len(t) if len(t) % 2 else len(t) - 1
+    d = {c: (savgol_filter(record.channels[c], win, 3, deriv=1, delta=dt),
+             savgol_filter(record.channels[c], win, 3, deriv=2, delta=dt))
+         for c in observe if c in record.channels}
+    B = _spline_basis(knots, t)
+    if "phi1" in d and "phi2" in d:
+        w1, w2 = d["phi1"][0], d["phi2"][0]
+        ok = np.abs(w1) > 0.2 * np.max(np.abs(w1))
+        if ok.sum() < len(knots):
+            ok = np.ones_like(ok)
+        u, *_ = np.linalg.lstsq(B[ok], (w2[ok] / np.where(ok, w1, 1.0)[ok]), rcond=None)
+        u = np.clip(u, 0.05 * np.max(np.abs(u)), None) if np.max(u) > 0 else np.ones(len(knots))
+    else:
+        u = np.ones(len(knots))
+    U21 = CubicSpline(knots, u)
+    U = np.asarray(jax.vmap(U21)(jnp.asarray(t)))
+    dU = np.asarray(jax.vmap(U21.derivative)(jnp.asarray(t)))
+    if "phi1" in d:
+        w, a = d["phi1"]
+    else:
+        w, a = d["phi2"][0] / U, (d["phi2"][1] - dU * d["phi2"][0] / U) / U
+    M1 = record.inputs.get("M1", np.zeros_like(t))
+    M2 = record.inputs.get("M2", np.zeros_like(t))
+    A = np.stack([a, U**2 * a + U * dU * w], axis=1)
+    b = M1 + U * M2
+    inner = slice(win, len(t) - win) if len(t) > 3 * win else slice(None)
+    (J1, J2), *_ = np.linalg.lstsq(A[inner], b[inner], rcond=None)
+    if not (J1 > 0 and J2 > 0):
+        I, *_ = np.linalg.lstsq(a[inner, None] * (1 + U[inner, None] ** 2), b[inner], rcond=None)
+        J1 = J2 = float(abs(I[0])) if I[0] != 0 else 1.0
+    return float(J1), float(J2), U21
+
+
+def fit_variator(record: Record, *, knots=DEFAULT_KNOTS, J1=None, J2=None, U21=None, observe=None,
+                 noise=None, **kwargs) -> FitResult:
+    """Fit J1, J2 and U21(t) of the variator to a record.
+
+    Arguments:
+        record: a `Record` with channels phi1 and/or phi2 (rad) and inputs
+            M1, M2 (N·m).
+        knots: number of U21 spline knots (uniform over the record), or the
+            knot times (s).
+        J1, J2: starting inertias, kg·m² (default: equation-error guess).
+        U21: starting ratio, a number or a `CubicSpline` on the knots
+            (default: from phi2'/phi1').
+        observe, noise, **kwargs: passed to `jaxnh.identify.fit` (e.g.
+            `progress=True`, `shooting=4`, `optimizer=optax.adam(1e-2)`).
+
+    Returns:
+        The `FitResult`; U21 is `result.params.U21`, its band
+        `result.profile_band("U21", ts)`.
+    """
+    knots = ratio_knots(record, knots) if np.ndim(knots) == 0 else np.asarray(knots, dtype=float)
+    observe = tuple(c for c in ("phi1", "phi2") if c in record.channels) if observe is None else tuple(observe)
+    if J1 is None or J2 is None or U21 is None:
+        g1, g2, gU = starting_guess(record, knots, observe)
+        J1 = g1 if J1 is None else J1
+        J2 = g2 if J2 is None else J2
+        U21 = gU if U21 is None else U21
+    if not isinstance(U21, CubicSpline):
+        U21 = CubicSpline(knots, np.broadcast_to(np.asarray(U21, dtype=float), knots.shape))
+    p = params_for(record, J1, J2, U21)
+    return fit(V.mechanism(), p, record, free=FREE, positive=FREE, observe=observe, noise=noise, **kwargs)
+
+
+def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
+    """The fit as a JSON-ready dict.
+
+    Keys: "J1", "J2" ({"value", "std"}, kg·m²), "U21" ({"t", "value", "std"} on a
+    uniform grid of `n_grid` times over the record), "rms_residual" (rad),
+    "iterations", "converged", and further "relative_std", "U21_knots",
+    "initial_state", "rms_by_channel", "noise", "chi2_dof", "identifiable",
+    "messages", "message", "observe", "data", "elapsed_s".
+    """
+    ts = np.linspace(result.t[0], result.t[-1], n_grid)
+    u, us = result.profile_band("U21", ts)
+    est = result.estimates
+
+    def num(x):
+        x = float(x)
+        return x if np.isfinite(x) else None  # JSON has no inf: undetermined → null
+
+    knots = np.asarray(result.params.U21.knots)
+    out = {
+        "J1": {"value": num(est["J1"]["value"]), "std": num(est["J1"]["std"])},
+        "J2": {"value": num(est["J2"]["value"]), "std": num(est["J2"]["std"])},
+        "U21": {"t": ts.tolist(), "value": u.tolist(), "std": [num(x) for x in us]},
+        "rms_residual": result.rms_residual,
+        "iterations": result.iterations,
+        "converged": result.converged,
+        "relative_std": {k: num(est[k]["std"] / est[k]["value"]) for k in ("J1", "J2")},
+        "U21_knots": {"t": knots.tolist(), "value": np.asarray(est["U21"]["value"]).tolist(),
+                      "std": [num(x) for x in np.asarray(est["U21"]["std"])]},
+        "initial_state": {k: {"value": num(v["value"]), "std": num(v["std"])} for k, v in est.items()
+                          if k not in ("J1", "J2", "U21")},
+        "rms_by_channel": result.rms_by_channel,
+        "noise": result.noise,
+        "chi2_dof": result.chi2_dof,
+        "identifiable": result.identifiable,
+        "messages": result.identifiability.messages,
+        "message": result.message,
+        "observe": list(result.observe),
+        "data": source,
+        "elapsed_s": result.elapsed,
+        "units": {"J1": "kg m^2", "J2": "kg m^2", "U21": "1", "rms_residual": "rad", "t": "s"},
+    }
+    return out

@@ -1,0 +1,265 @@
+"""Parameter identification: recovery, identifiability, statistics, data checks, command line.
+
+The fits share one compiled Levenberg–Marquardt solve: every record here has
+the shape of the embedded one (1501 samples, two channels, 7 U21 knots) and
+the default solver settings, so the solve compiles once per process.
+"""
+
+import json
+import os
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import jaxnh as nh
+from jaxnh.identify import Record, fit, load_default, noise_level, read_csv, statistics, write_csv
+from jaxnh.identify.diagnostics import analyse
+from jaxnh.identify.fit import GN_STEP_TOL
+from jaxnh.identify.parameters import Parametrisation
+from jaxnh.identify.variator import FREE, fit_variator, params_for, ratio_knots
+from jaxnh.models import variator as V
+from jaxnh.profiles import CubicSpline
+
+TRUE = {"J1": 0.025, "J2": 0.04, "U21": np.array([1.2, 1.1, 0.95, 0.85, 0.9, 1.05, 1.15]), "w0": 3.0,
+        "phi0": np.array([0.1, -0.2])}
+# starting guess off by 30–40 % in every parameter
+START = {"J1": 1.4 * TRUE["J1"], "J2": 0.65 * TRUE["J2"], "U21": TRUE["U21"] * np.array([1.3, 0.7] * 3 + [1.3])}
+NOISE = 1e-4  # rad: weights only (the data below are noise-free)
+
+
+def clean_record(with_torques: bool = True) -> Record:
+    """A noise-free record generated inside the model class: the variator with a
+    spline U21 on the fit's knots and the embedded record's torques (as `Sampled`
+    inputs), integrated with `simulate`'s default settings — those the fit uses."""
+    emb = load_default()
+    inputs = emb.inputs if with_torques else {k: np.zeros_like(v) for k, v in emb.inputs.items()}
+    base = Record(emb.t, emb.channels, inputs, "clean")
+    U = CubicSpline(ratio_knots(base), TRUE["U21"])
+    p = params_for(base, TRUE["J1"], TRUE["J2"], U)
+    qd0 = jnp.array([TRUE["w0"], TRUE["U21"][0] * TRUE["w0"]])
+    q = np.asarray(nh.simulate(V.mechanism(), p, jnp.asarray(TRUE["phi0"]), qd0, jnp.asarray(emb.t)).q)
+    return Record(emb.t, {"phi1": q[:, 0], "phi2": q[:, 1]}, inputs, "clean")
+
+
+def fit_from_start(record, **kw):
+    knots = ratio_knots(record)
+    return fit_variator(record, J1=START["J1"], J2=START["J2"], U21=CubicSpline(knots, START["U21"]),
+                        noise=NOISE, **kw)
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return clean_record()
+
+
+@pytest.fixture(scope="module")
+def recovered(clean):
+    return fit_from_start(clean)
+
+
+def rel_err(result):
+    e = result.estimates
+    return np.concatenate([[e["J1"]["value"] / TRUE["J1"] - 1, e["J2"]["value"] / TRUE["J2"] - 1],
+                           np.asarray(e["U21"]["value"]) / TRUE["U21"] - 1])
+
+
+# --- acceptance 1: noise-free data, start 30–40 % off ----------------------------------------
+
+
+def test_noise_free_recovery_from_a_poor_start(recovered):
+    r = recovered
+    # the data are reproduced exactly at the truth, so only the optimiser's
+    # termination limits the answer: 1e-6 relative is the acceptance criterion
+    np.testing.assert_array_less(np.abs(rel_err(r)), 1e-6)
+    assert r.converged and r.identifiable
+    np.testing.assert_allclose(r.q0, TRUE["phi0"], atol=1e-8)
+    np.testing.assert_allclose(r.qd0[0], TRUE["w0"], rtol=1e-7)
+    assert r.rms_residual < 1e-8  # rad; the data have no noise
+    assert set(r.estimates) == {"J1", "J2", "U21", "phi1(t0)", "phi2(t0)", "phi1'(t0)"}
+    assert r.iterations < 40
+
+
+def test_band_is_the_delta_method(recovered):
+    # U21 is linear in its knot values: its variance at a knot is that knot's variance
+    knots = np.asarray(recovered.params.U21.knots)
+    val, std = recovered.profile_band("U21", knots)
+    np.testing.assert_allclose(val, recovered.estimates["U21"]["value"], rtol=1e-12)
+    np.testing.assert_allclose(std, recovered.estimates["U21"]["std"], rtol=1e-6)
+
+
+# --- identifiability ---------------------------------------------------------------------------
+
+
+def test_zero_torques_only_the_ratio_of_inertias_is_identifiable():
+    rec = clean_record(with_torques=False)
+    with pytest.warns(UserWarning, match="NOT IDENTIFIABLE"):
+        r = fit_from_start(rec)
+    assert not r.identifiable
+    (entry,) = r.identifiability.undetermined
+    assert set(entry["direction"]) == {"J1", "J2"}  # scaling both together changes nothing
+    assert entry["identifiable"] in ("J1/J2", "J2/J1")
+    assert "J1" in entry["message"] and "J2" in entry["message"]
+    assert not np.isfinite(r.estimates["J1"]["std"]) and not np.isfinite(r.estimates["J2"]["std"])
+    # what the data do determine is still estimated, with finite errors
+    e = r.estimates
+    np.testing.assert_allclose(e["J1"]["value"] / e["J2"]["value"], TRUE["J1"] / TRUE["J2"], rtol=1e-6)
+    np.testing.assert_allclose(e["U21"]["value"], TRUE["U21"], rtol=1e-6)
+    assert np.all(np.isfinite(e["U21"]["std"]))
+    _, band = r.profile_band("U21", np.linspace(0, 6, 5))
+    assert np.all(np.isfinite(band))
+    assert not np.isfinite(r.band(lambda p, t: p.J1 + p.J2 * p.U21(t) ** 2, [1.0])[1][0])
+
+
+def test_statistics_on_a_linear_problem():
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(200, 3))
+    r = rng.normal(size=200)
+    st = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r)))
+    s2 = r @ r / (200 - 3)
+    np.testing.assert_allclose(st["cov"], s2 * np.linalg.inv(J.T @ J), rtol=1e-10)
+    np.testing.assert_allclose(st["s2"], s2, rtol=1e-12)
+    # two log-parameters whose effects cancel when both grow by the same factor:
+    # the direction (+1, +1) is undetermined, the ratio Ja/Jb is determined
+    for sign, determined in ((-1, "Ja/Jb"), (1, "Ja·Jb")):
+        Jd = np.column_stack([J[:, 0], sign * J[:, 0], J[:, 2]])
+        st = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(Jd), jnp.asarray(r)))
+        assert np.isinf(st["std"][:2]).all() and np.isfinite(st["std"][2])
+        rep = analyse(st, ("Ja", "Jb", "c"), np.array([True, True, False]), 1e-8)
+        assert not rep.identifiable and rep.undetermined[0]["identifiable"] == determined
+
+
+# --- acceptance 2, the command line, the JSON --------------------------------------------------
+
+
+def test_cli_on_the_embedded_record(tmp_path):
+    from jaxnh.identify.cli import fit_main
+
+    out = tmp_path / "out"
+    code = fit_main(["--json", str(tmp_path / "fit.json"), "--out", str(out), "--quiet"])
+    assert code == 0
+    rep = json.loads((tmp_path / "fit.json").read_text())
+    for key in ("J1", "J2", "U21", "rms_residual", "iterations", "converged"):
+        assert key in rep
+    assert rep["converged"] and rep["identifiable"]
+    assert len(rep["U21"]["t"]) == len(rep["U21"]["value"]) == len(rep["U21"]["std"])
+    truth = json.loads((__import__("importlib").resources.files("jaxnh") / "data" / "variator_truth.json").read_text())
+    for k in ("J1", "J2"):
+        assert abs(rep[k]["value"] - truth[k]) <= 1.96 * rep[k]["std"], (k, rep[k], truth[k])
+        assert rep[k]["std"] / rep[k]["value"] < 1e-3  # kg·m² known to better than 0.1 %
+    v, s = np.asarray(rep["U21_knots"]["value"]), np.asarray(rep["U21_knots"]["std"])
+    assert np.all(np.abs(v - truth["U21_values"]) <= 1.96 * s * 1.5)  # 7 knots: allow for multiplicity
+    assert 0.5 < rep["chi2_dof"] < 2  # the noise levels estimated from the data are about right
+    for png in ("fit_data.png", "fit_ratio.png"):
+        assert (out / png).stat().st_size > 10_000
+
+
+# --- options: multiple shooting, one encoder, optax ------------------------------------------------
+
+
+def test_multiple_shooting_from_a_flat_ratio(clean):
+    r = fit_variator(clean, J1=2 * TRUE["J1"], J2=0.5 * TRUE["J2"], U21=1.0, noise=NOISE, shooting=4)
+    assert r.shooting == 4 and r.converged
+    np.testing.assert_array_less(np.abs(rel_err(r)), 1e-6)
+
+
+def test_one_encoder_is_enough_with_torques(clean, recovered):
+    # with phi2 alone J1, J2 and U21 are still determined (the torques separate
+    # them) but about 20x worse conditioned: the valley is long and curved, so
+    # start 3 % off (10 % takes ~110 iterations). The unobserved phi1(0) is given
+    # its true value so that the solver's step sequence — and with it the data —
+    # is reproduced exactly at the truth.
+    knots = ratio_knots(clean)
+    r = fit_variator(clean, J1=1.03 * TRUE["J1"], J2=TRUE["J2"] / 1.03, U21=CubicSpline(knots, 1.03 * TRUE["U21"]),
+                     noise=NOISE, observe=("phi2",), q0=TRUE["phi0"], max_iterations=200)
+    assert r.observe == ("phi2",) and "phi1(t0)" not in r.estimates
+    assert r.converged and r.identifiable
+    assert r.identifiability.condition > 5 * recovered.identifiability.condition
+    np.testing.assert_array_less(np.abs(rel_err(r)), 1e-6)
+
+
+def test_optax_reports_honestly_when_not_converged(clean):
+    adam = optax.adam(1e-2)
+    start = fit_from_start(clean, optimizer=adam, max_iterations=1)  # the best point seen is the start
+    r = fit_from_start(clean, optimizer=adam, max_iterations=15)
+    assert r.optimizer == "optax" and r.iterations == 15 and r.differentiation == "forward"
+    assert r.rms_residual < 0.5 * start.rms_residual  # it descends ...
+    assert not r.converged and r.gn_step > GN_STEP_TOL  # ... but does not claim to have arrived
+    assert "iteration limit" in r.message
+
+
+# --- data and argument checks (no compilation) ---------------------------------------------------
+
+
+def write(tmp_path, text):
+    p = tmp_path / "d.csv"
+    p.write_text(text)
+    return p
+
+
+def good_rows(n=25, t=None):
+    t = np.arange(n) * 0.01 if t is None else t
+    return "\n".join(f"{x},{0.1 * i},{0.2 * i},0.1,-0.1" for i, x in enumerate(t))
+
+
+@pytest.mark.parametrize("text,match", [
+    ("t,phi1,M1,M2\n" + "\n".join(f"{0.01 * i},0,0,0" for i in range(25)), r"missing column\(s\) \['phi2'\]"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.09, np.arange(10, 24) * 0.01]), "repeated time"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.05, np.arange(11, 25) * 0.01]), "decreasing time"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "nan,-0.1", 1), "non-finite values"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows(5), "too few samples: 5"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "abc,-0.1", 1), "'abc' is not a number"),
+])
+def test_read_csv_rejects_bad_records(tmp_path, text, match):
+    with pytest.raises(ValueError, match=match):
+        read_csv(write(tmp_path, text))
+
+
+def test_csv_round_trip_and_embedded_record(tmp_path):
+    rec = load_default()
+    assert rec.n == 1501 and set(rec.channels) == {"phi1", "phi2"} and set(rec.inputs) == {"M1", "M2"}
+    write_csv(rec.head(50), tmp_path / "x.csv", comments=["a comment"])
+    back = read_csv(tmp_path / "x.csv")
+    np.testing.assert_allclose(back.t, rec.t[:50], rtol=1e-9)
+    np.testing.assert_allclose(back.channels["phi2"], rec.channels["phi2"][:50], rtol=1e-9)
+    one = read_csv(tmp_path / "x.csv", coordinates=("phi1",))
+    assert set(one.channels) == {"phi1"}
+
+
+def test_noise_level_of_white_noise_on_a_smooth_motion():
+    t = np.linspace(0, 10, 20001)
+    rng = np.random.default_rng(1)
+    y = np.stack([3 * t + np.sin(2 * t), 0.5 * t**2], axis=1) + rng.normal(size=(t.size, 2)) * [2e-4, 7e-4]
+    # 20000 third differences: the estimate's relative standard error is about 1.5 %
+    np.testing.assert_allclose(noise_level(jnp.asarray(y)), [2e-4, 7e-4], rtol=0.06)
+    # a quantised encoder (step 1e-3) with jitter 0.4 step: reading error sqrt(jitter² + step²/12)
+    enc = np.floor((5 * t + 0.4e-3 * rng.normal(size=t.size)) / 1e-3) * 1e-3
+    np.testing.assert_allclose(noise_level(jnp.asarray(enc)), np.sqrt(0.4e-3**2 + 1e-6 / 12), rtol=0.06)
+
+
+def test_argument_errors_name_the_argument():
+    rec = load_default()
+    p = params_for(rec, 0.02, 0.05, CubicSpline(ratio_knots(rec), np.ones(7)))
+    mech = V.mechanism()
+    with pytest.raises(ValueError, match="no parameter 'J3'"):
+        fit(mech, p, rec, free=("J1", "J3"))
+    with pytest.raises(ValueError, match=r"positive=.*not among free"):
+        fit(mech, p, rec, free=("J1",), positive=("J2",))
+    with pytest.raises(ValueError, match="must be > 0 at the starting guess"):
+        fit(mech, params_for(rec, -0.02, 0.05, p.U21), rec, free=FREE, positive=FREE)
+    with pytest.raises(ValueError, match="observe: 'phi3' is not a coordinate"):
+        fit(mech, p, rec, free=FREE, observe=("phi3",))
+    with pytest.raises(ValueError, match="noise: standard deviations must be finite and > 0"):
+        fit(mech, p, rec, free=FREE, noise=-1.0)
+    with pytest.raises(ValueError, match="optimizer must be one of"):
+        fit(mech, p, rec, free=FREE, optimizer="newton")
+    with pytest.raises(ValueError, match="shooting=400: segments of"):
+        fit(mech, p, rec, free=FREE, shooting=400)
+    par = Parametrisation(p, FREE, FREE)
+    assert par.labels[:3] == ("J1", "J2", "U21[0]") and par.size == 9
+    back = par.unpack(par.pack())
+    np.testing.assert_allclose(back.U21.values, p.U21.values, rtol=1e-15)
+    np.testing.assert_allclose(back.J2, p.J2, rtol=1e-15)

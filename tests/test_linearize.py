@@ -1,0 +1,90 @@
+"""`linearize` on small systems whose linearisation is known by hand: a damped pendulum,
+and a wheel rolling on a spring written with a velocity constraint, in both choices of
+independent speed. Also jit, vmap and grad through it, and its argument checks."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnh as nh
+from jaxnh.linearize import linearize
+
+G, L = 9.81, 0.7
+
+PENDULUM = nh.Mechanism(
+    lambda q, qd, t, p: 0.5 * p["m"] * L**2 * qd[0] ** 2,
+    potential=lambda q, t, p: -p["m"] * G * L * jnp.cos(q[0]),
+    forces=lambda q, qd, t, p: -p["c"] * qd,
+    names=("theta",),
+)
+PP = {"m": jnp.asarray(1.5), "c": jnp.asarray(0.2)}
+
+
+def test_damped_pendulum_about_a_non_equilibrium_state():
+    th = 0.3
+    lin = linearize(PENDULUM, PP, jnp.array([th]), jnp.array([0.0]))
+    mL2 = 1.5 * L**2
+    np.testing.assert_allclose(lin.A, [[0.0, 1.0], [-G / L * np.cos(th), -0.2 / mL2]], rtol=1e-14)
+    np.testing.assert_allclose(lin.mass, [[mL2]], rtol=1e-14)
+    np.testing.assert_allclose(lin.damping, [[0.2]], rtol=1e-14)
+    np.testing.assert_allclose(lin.stiffness, [[1.5 * G * L * np.cos(th)]], rtol=1e-14)
+    np.testing.assert_allclose(lin.rates, [0.0, -G / L * np.sin(th)], rtol=1e-14)  # not an equilibrium
+    assert lin.states == ("theta", "dtheta")
+    # declared accelerations are checked: a wrong guess does not hide the true ones
+    lin2 = linearize(PENDULUM, PP, jnp.array([th]), jnp.array([0.0]), accelerations=jnp.zeros(1))
+    np.testing.assert_allclose(lin2.rates, lin.rates, rtol=1e-14)
+
+
+# a wheel (mass m, inertia J about its axle, radius r) rolling on a spring of stiffness k:
+# q = (x, θ), rolling ẋ − r θ̇ = 0 as a (integrable) velocity constraint
+WHEEL = nh.Mechanism(
+    lambda q, qd, t, p: 0.5 * p["m"] * qd[0] ** 2 + 0.5 * p["J"] * qd[1] ** 2,
+    constraints=lambda q, qd, t, p: jnp.stack([qd[0] - p["r"] * qd[1]]),
+    potential=lambda q, t, p: 0.5 * p["k"] * q[0] ** 2,
+    names=("x", "theta"),
+)
+WP = {"m": jnp.asarray(2.0), "J": jnp.asarray(0.05), "r": jnp.asarray(0.25), "k": jnp.asarray(30.0)}
+
+
+@pytest.mark.parametrize("method", ["lagrange", "appell"])
+def test_constrained_linearisation_in_either_speed(method):
+    m, J, r, k = 2.0, 0.05, 0.25, 30.0
+    q, qd = jnp.zeros(2), jnp.zeros(2)
+    lin = linearize(WHEEL, WP, q, qd, coordinates=(0,), speeds=(0,), method=method)
+    M = m + J / r**2  # effective mass for ẋ
+    np.testing.assert_allclose(lin.A, [[0.0, 1.0], [-k / M, 0.0]], rtol=1e-14)
+    np.testing.assert_allclose(lin.mass, [[M]], rtol=1e-14)
+    lin = linearize(WHEEL, WP, q, qd, coordinates=(0,), speeds=(1,), method=method)
+    np.testing.assert_allclose(lin.A, [[0.0, r], [-k * r / (m * r**2 + J), 0.0]], rtol=1e-14)
+    np.testing.assert_allclose(lin.mass, [[m * r**2 + J]], rtol=1e-14)
+    np.testing.assert_allclose(lin.stiffness, [[k * r]], rtol=1e-14)
+    assert lin.states == ("x", "dtheta")
+
+
+def test_jit_vmap_grad():
+    def omega2(k):
+        p = dict(WP, k=k)
+        return -linearize(WHEEL, p, jnp.zeros(2), jnp.zeros(2), coordinates=(0,), speeds=(0,)).A[1, 0]
+
+    M = 2.0 + 0.05 / 0.25**2
+    ks = jnp.array([10.0, 20.0, 40.0])
+    np.testing.assert_allclose(jax.jit(jax.vmap(omega2))(ks), ks / M, rtol=1e-14)
+    np.testing.assert_allclose(jax.grad(omega2)(30.0), 1 / M, rtol=1e-14)
+    # eigenvalues ±i√(k/M)
+    ev = linearize(WHEEL, WP, jnp.zeros(2), jnp.zeros(2), coordinates=(0,), speeds=(0,)).eigenvalues()
+    np.testing.assert_allclose(np.sort(ev.imag), [-np.sqrt(30 / M), np.sqrt(30 / M)], rtol=1e-14)
+
+
+def test_argument_errors():
+    q, qd = jnp.zeros(2), jnp.zeros(2)
+    with pytest.raises(ValueError, match="method"):
+        linearize(WHEEL, WP, q, qd, method="substituted")
+    with pytest.raises(ValueError, match="coordinates"):
+        linearize(WHEEL, WP, q, qd, coordinates=(2,))
+    with pytest.raises(ValueError, match="independent"):
+        linearize(WHEEL, WP, q, qd, speeds=(0, 1))
+    with pytest.raises(ValueError, match="accelerations"):
+        linearize(WHEEL, WP, q, qd, speeds=(0,), accelerations=jnp.zeros(2))
+    with pytest.raises(ValueError, match="independent"):  # automatic choice needs concrete values
+        jax.jit(lambda a: linearize(WHEEL, WP, a, qd).A)(q)
