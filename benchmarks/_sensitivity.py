@@ -31,6 +31,7 @@ import math
 import diffrax
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
@@ -57,12 +58,7 @@ def auto_adjoint(params, q0, qd0, max_forward: int = FORWARD_MAX_PARAMETERS):
     return ForwardSensitivity() if n <= max_forward else diffrax.RecursiveCheckpointAdjoint()
 
 
-def _y_norm(scaled_error):
-    """Step control on the state only (the sensitivities follow its steps)."""
-    return optx.rms_norm(scaled_error[0])
-
-
-def _solve(vector_field, solver, y0, args, ts, rtol, atol, max_steps, dt0, throw, norm=optx.rms_norm):
+def _solve(vector_field, solver, y0, args, ts, controller, max_steps, dt0, throw):
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vector_field),
         solver,
@@ -72,7 +68,7 @@ def _solve(vector_field, solver, y0, args, ts, rtol, atol, max_steps, dt0, throw
         y0=y0,
         args=args,
         saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, norm=norm),
+        stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=diffrax.ForwardMode(),  # only reached by higher-order derivatives
         throw=throw,
@@ -81,22 +77,24 @@ def _solve(vector_field, solver, y0, args, ts, rtol, atol, max_steps, dt0, throw
 
 
 @eqx.filter_custom_jvp
-def solve_forward_sensitivity(params, y0, ts, rtol, atol, *, vector_field, solver, max_steps, dt0, throw):
+def solve_forward_sensitivity(params, y0, ts, controller, *, vector_field, solver, max_steps, dt0, throw):
     """The solve `vector_field(t, y, params)` from y0 reported at ts: (ys, result, stats).
 
-    Differentiable in `params` and `y0` by forward sensitivities (see module doc).
+    `controller` is a `diffrax.PIDController` (its norm must be the default
+    RMS norm). Differentiable in `params` and `y0` by forward sensitivities
+    (see the module docstring).
     """
-    return _solve(vector_field, solver, y0, params, ts, rtol, atol, max_steps, dt0, throw)
+    return _solve(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
 
 
 @solve_forward_sensitivity.def_jvp
 def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw):
-    params, y0, ts, rtol, atol = primals
-    t_params, t_y0, t_ts, t_rtol, t_atol = tangents
-    if any(x is not None for x in jtu.tree_leaves((t_ts, t_rtol, t_atol))):
+    params, y0, ts, controller = primals
+    t_params, t_y0, t_ts, t_controller = tangents
+    if any(x is not None for x in jtu.tree_leaves((t_ts, t_controller))):
         raise NotImplementedError(
             "ForwardSensitivity differentiates with respect to the parameters and the initial state only, "
-            "not the report times or tolerances; use adjoint=diffrax.RecursiveCheckpointAdjoint() for those."
+            "not the report times or controller settings; use adjoint=diffrax.RecursiveCheckpointAdjoint() for those."
         )
     # Split the inputs into differentiated leaves (nonzero tangent) and the rest.
     is_none = lambda x: x is None  # noqa: E731
@@ -111,7 +109,7 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     sizes_y = [x.size if on else 0 for x, on in zip(y_leaves, y_on)]
     P = sum(sizes_p) + sum(sizes_y)
     if P == 0:
-        out = _solve(vector_field, solver, y0, params, ts, rtol, atol, max_steps, dt0, throw)
+        out = _solve(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
         return out, jtu.tree_map(lambda _: None, out)
 
     dtype = jnp.result_type(*y_leaves)
@@ -132,15 +130,23 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     S0 = jtu.tree_unflatten(y_def, S0)
     E = jtu.tree_unflatten(p_def, E)
 
-    def augmented(t, state, args):
-        y, S = state
+    # The augmented state (y, S) travels as one flat vector: the solver then
+    # handles one array instead of 2 × (leaves of y), which costs less per step.
+    z0, unravel = jax.flatten_util.ravel_pytree((y0, S0))
+    ny = sum(x.size for x in y_leaves)
+
+    def augmented(t, z, args):
+        y, S = unravel(z)
         pd, E_ = args
         fy, lin = jax.linearize(lambda y_, pd_: vector_field(t, y_, eqx.combine(pd_, p_rest)), y, pd)
-        return fy, jax.vmap(lin)(S, E_)
+        return jax.flatten_util.ravel_pytree((fy, jax.vmap(lin)(S, E_)))[0].astype(z.dtype)
 
-    (ys, Ss), result, stats = _solve(
-        augmented, solver, (y0, S0), (p_diff, E), ts, rtol, atol, max_steps, dt0, throw, norm=_y_norm
-    )
+    def y_norm(scaled_error):  # step control on the state only: the sensitivities follow its steps
+        return optx.rms_norm(scaled_error[:ny])
+
+    y_controller = eqx.tree_at(lambda c: c.norm, controller, y_norm)
+    zs, result, stats = _solve(augmented, solver, z0, (p_diff, E), ts, y_controller, max_steps, dt0, throw)
+    ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]
     parts += [jnp.ravel(t).astype(dtype) for t in jtu.tree_leaves(tp_diff)]
@@ -158,9 +164,8 @@ def diffeqsolve(terms, solver, t0, t1, dt0, y0, args=None, *, saveat, stepsize_c
         return diffrax.diffeqsolve(terms, solver, t0, t1, dt0, y0, args, saveat=saveat,
                                    stepsize_controller=stepsize_controller, max_steps=max_steps,
                                    adjoint=adjoint, throw=throw, **kw)
-    ctrl = stepsize_controller
     ys, result, stats = solve_forward_sensitivity(
-        args, y0, saveat.subs.ts, ctrl.rtol, ctrl.atol,
+        args, y0, saveat.subs.ts, stepsize_controller,
         vector_field=terms.vector_field, solver=solver, max_steps=max_steps, dt0=dt0, throw=throw,
     )
     return _Out(ys=ys, result=result, stats=stats)

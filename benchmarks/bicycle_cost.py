@@ -5,6 +5,7 @@ Run from the repository root:
     python benchmarks/bicycle_cost.py              # jaxnh, then SymPy if installed
     python benchmarks/bicycle_cost.py --no-sympy   # jaxnh only
     python benchmarks/bicycle_cost.py --sympy-timeout 1800
+    python benchmarks/bicycle_cost.py --sympy-numeric   # SymPy with the benchmark numbers substituted first
 
 Measured, wall clock, in this process (first calls include tracing and XLA
 compilation; the machine's load matters, so the script also prints CPU time):
@@ -90,7 +91,12 @@ def jaxnh_costs():
 # --- SymPy: the same bicycle for KanesMethod -----------------------------------------------
 
 
-def sympy_costs(queue):
+def sympy_costs(queue, numeric=False):
+    """Kane's equations, linearisation and evaluation in SymPy; results go to `queue` phase by phase.
+
+    `numeric=True` puts the benchmark's numbers (and v = 5 m/s) into the model
+    from the start, which spares SymPy the symbolic parameters.
+    """
     import sympy as sm
     import sympy.physics.mechanics as me
 
@@ -103,6 +109,8 @@ def sympy_costs(queue):
     names = ["w", "c", "lam", "g", "rR", "mR", "IRxx", "IRyy", "xB", "zB", "mB", "IBxx", "IByy", "IBzz", "IBxz",
              "xH", "zH", "mH", "IHxx", "IHyy", "IHzz", "IHxz", "rF", "mF", "IFxx", "IFyy"]
     s = dict(zip(names, sm.symbols(names)))
+    if numeric:
+        s = {k: sm.Float(BENCHMARK[k]) for k in names}
     N = me.ReferenceFrame("N")  # x forward, y right, z down
     A = N.orientnew("A", "Axis", (q[2], N.z))
     L = A.orientnew("L", "Axis", (q[3], A.x))
@@ -148,7 +156,7 @@ def sympy_costs(queue):
     queue.put(dict(res))
 
     start = clock()
-    v = sm.Symbol("v")
+    v = sm.Float(5.0) if numeric else sm.Symbol("v")
     op = {qi: 0 for qi in q}
     op.update({ui: 0 for ui in u})
     op.update({u[0]: v, u[5]: -v / s["rR"], u[7]: -v / s["rF"]})
@@ -158,9 +166,10 @@ def sympy_costs(queue):
     queue.put(dict(res))
 
     start = clock()
-    num = {s[k]: BENCHMARK[k] for k in names}
-    num[v] = 5.0
-    A5 = np.array(sm.N(Amat.subs(num)).tolist(), dtype=float)
+    num = {} if numeric else {s[k]: BENCHMARK[k] for k in names}
+    if not numeric:
+        num[v] = 5.0
+    A5 = np.array(sm.N(Amat.subs(num)).tolist(), dtype=complex).real
     # states: x, y, yaw, roll, rear, steer, front, u_roll, u_rear, u_steer
     idx = [3, 5, 7, 9]
     res["evaluate at the benchmark parameters, v = 5 m/s"] = since(start)
@@ -171,14 +180,18 @@ def sympy_costs(queue):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--no-sympy", action="store_true")
+    ap.add_argument("--no-jaxnh", action="store_true", help="SymPy only")
     ap.add_argument("--sympy-timeout", type=float, default=1200.0, help="seconds before giving up on SymPy")
+    ap.add_argument("--sympy-numeric", action="store_true",
+                    help="give SymPy the benchmark numbers from the start instead of symbolic parameters")
     args = ap.parse_args()
     print(f"CPU cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
-    jx = jaxnh_costs()
-    print("jaxnh (autodiff, jit):                                  wall s    CPU s")
-    for k, (w, c) in ((k, v) for k, v in jx.items() if not k.startswith("_")):
-        print(f"  {k:<54}{w:8.2f} {c:8.2f}")
-    print(f"  (nonlinear run: {jx['_steps']} steps; eigenvalues at 5 m/s {jx['_eig5']})")
+    jx = {} if args.no_jaxnh else jaxnh_costs()
+    if jx:
+        print("jaxnh (autodiff, jit):                                  wall s    CPU s")
+        for k, (w, c) in ((k, v) for k, v in jx.items() if not k.startswith("_")):
+            print(f"  {k:<54}{w:8.2f} {c:8.2f}")
+        print(f"  (nonlinear run: {jx['_steps']} steps; eigenvalues at 5 m/s {jx['_eig5']})")
     if args.no_sympy:
         return
     try:
@@ -187,7 +200,7 @@ def main():
         print("SymPy not installed (pip install 'jaxnh[bench]'): skipping the KanesMethod comparison")
         return
     queue = mp.get_context("spawn").Queue()
-    proc = mp.get_context("spawn").Process(target=sympy_costs, args=(queue,))
+    proc = mp.get_context("spawn").Process(target=sympy_costs, args=(queue, args.sympy_numeric))
     proc.start()
     proc.join(args.sympy_timeout)
     res = {}
@@ -195,14 +208,17 @@ def main():
         res = queue.get()
     if proc.is_alive():
         proc.terminate()
-        print(f"SymPy did not finish within {args.sympy_timeout:.0f} s; phases completed:")
+        print(f"SymPy did not finish within {args.sympy_timeout:.0f} s (wall); phases completed:")
     else:
-        print("SymPy (KanesMethod, same model):                        wall s    CPU s")
+        kind = "numeric parameters" if args.sympy_numeric else "symbolic parameters"
+        print(f"SymPy (KanesMethod, same model, {kind}):   wall s    CPU s")
     for k, (w, c) in ((k, v) for k, v in res.items() if not k.startswith("_")):
         print(f"  {k:<54}{w:8.2f} {c:8.2f}")
     if "_eig5" in res:
-        err = np.abs(res["_eig5"] - jx["_eig5"]).max()
-        print(f"  eigenvalues at 5 m/s {res['_eig5']}; |SymPy − jaxnh| = {err:.1e}")
+        from jaxnh.models.bicycle import PUBLISHED
+
+        err = np.abs(res["_eig5"] - np.sort_complex(np.array(PUBLISHED["eigenvalues_v5"]))).max()
+        print(f"  eigenvalues at 5 m/s {res['_eig5']}; |SymPy − published| = {err:.1e}")
 
 
 if __name__ == "__main__":

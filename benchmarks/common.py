@@ -77,7 +77,8 @@ def jaxnh_solver_fn(mech, method, q0, qd0, params, ts, solver, *, independent=No
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
     def f(p, y0, rtol, atol):
-        (q, qd), result, stats, out = _integrate(form, p, y0, ts, solver, rtol, atol, tuple(record), max_steps, None,
+        controller = diffrax.PIDController(rtol=rtol, atol=atol)
+        (q, qd), result, stats, out = _integrate(form, p, y0, ts, solver, controller, tuple(record), max_steps, None,
                                                  adjoint, False)
         return q, qd, stats["num_steps"], out
 

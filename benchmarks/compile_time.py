@@ -31,7 +31,7 @@ SCENARIOS = {
     "jax.grad of a trajectory loss (default adjoint)": "grad",
     "jax.grad of a trajectory loss (ForwardSensitivity, proposed)": "grad_sens",
 }
-QUICK = ["simulate", "simulate_proposed", "hand"]
+QUICK = ["simulate", "simulate_proposed"]
 
 
 def child(kind: str) -> dict:
@@ -121,7 +121,7 @@ def run(quick: bool) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="three scenarios only")
+    ap.add_argument("--quick", action="store_true", help="two scenarios only")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:

@@ -1,0 +1,421 @@
+"""Figures and benchmarks/RESULTS.md from the JSON files in benchmarks/results/.
+
+Every number in RESULTS.md is computed here from those files; nothing is
+typed by hand. Run after the benchmarks (run_all does):
+
+    python -m benchmarks.report
+"""
+
+from __future__ import annotations
+
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from . import common as C  # noqa: E402
+from . import proposals  # noqa: E402
+
+SOLVER_COLORS = {"Tsit5": "tab:blue", "Tsit5u": "tab:cyan", "Dopri5": "tab:green", "Dopri8": "tab:olive",
+                 "DOP853": "tab:red", "Kvaerno5": "tab:purple", "RK45": "tab:gray", "LSODA": "tab:brown",
+                 "Radau": "tab:pink"}
+METHOD_STYLE = {"appell": ("-", "o"), "lagrange": ("--", "s"), "hand": (":", "^"), "numpy": ("-.", "x")}
+
+
+def fmt_t(s) -> str:
+    if s is None or (isinstance(s, float) and not math.isfinite(s)):
+        return "—"
+    return f"{s * 1e3:.3g} ms" if s >= 1e-3 else f"{s * 1e6:.3g} µs"
+
+
+def fmt_x(r) -> str:
+    return "—" if r is None or not math.isfinite(r) else f"{r:.2f}×"
+
+
+def _curves(wp):
+    curves = {}
+    for p in wp["points"]:
+        curves.setdefault(p["name"], []).append(p)
+    for v in curves.values():
+        v.sort(key=lambda p: -p["rtol"])
+    return curves
+
+
+def _label(name: str, hand_label: str) -> str:
+    kind, solver = name.split("/")
+    who = {"appell": "jaxnh appell", "lagrange": "jaxnh lagrange", "hand": hand_label, "scipy": "SciPy"}[kind]
+    return f"{who}, {solver if kind == 'scipy' else C.SOLVER_LABELS.get(solver, solver)}"
+
+
+def time_at(curves, name, err):
+    if name not in curves:
+        return None
+    return C.time_at_error([(p["error"], p["time"]) for p in curves[name]], err)
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def fig_wp(wp, path):
+    curves = _curves(wp)
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(15, 6.5), gridspec_kw=dict(width_ratios=[1.6, 1]))
+    for name, pts in curves.items():
+        kind, solver = name.split("/")
+        method = kind if kind != "scipy" else "numpy"
+        ls, mk = METHOD_STYLE[method]
+        e = [p["error"] for p in pts]
+        t = [p["time"] for p in pts]
+        ax.loglog(t, e, ls=ls, marker=mk, ms=4, color=SOLVER_COLORS.get(solver, "k"), label=_label(name, "by hand"))
+        if kind != "scipy":
+            ax2.loglog([p["rtol"] for p in pts], [p["step_cost"] * 1e6 for p in pts], ls=ls, marker=mk, ms=4,
+                       color=SOLVER_COLORS.get(solver, "k"))
+    ax.set_xlabel("run time per solve (s, process CPU time, median)")
+    ax.set_ylabel("max abs error over report times")
+    ax.set_title(f"Work-precision: {wp['problem']} ({wp['horizon']:g} s, {wp['n_report']} report times)")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, loc="lower left")
+    ax2.set_xlabel("rtol (atol = rtol/100)")
+    ax2.set_ylabel("time per step (µs)")
+    ax2.set_title("cost per step (incl. saving at the report times)")
+    ax2.invert_xaxis()
+    ax2.grid(True, which="major", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig_throughput(tp, path):
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    groups = {}
+    for r in tp["rows"]:
+        groups.setdefault((r["kind"], r["solver"]), []).append(r)
+    for (kind, solver), rows in groups.items():
+        rows.sort(key=lambda r: r["batch"])
+        ls, mk = METHOD_STYLE[kind]
+        ax.loglog([r["batch"] for r in rows], [r["per_trajectory"] for r in rows], ls=ls, marker=mk,
+                  color=SOLVER_COLORS.get(solver, "k"), label=f"{kind}, {C.SOLVER_LABELS.get(solver, solver)} (CPU)")
+        ax.loglog([r["batch"] for r in rows], [r["per_trajectory_wall"] for r in rows], ls=ls, marker=mk, alpha=0.35,
+                  color=SOLVER_COLORS.get(solver, "k"), label=f"{kind}, {solver} (wall)")
+    ax.set_xlabel("batch size (vmap)")
+    ax.set_ylabel("time per trajectory (s)")
+    ax.set_title(f"Batch throughput, variator, rtol {tp['rtol']:g}")
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig_gradients(gr, path):
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    rows = sorted(gr["rows"], key=lambda r: (r["P"], r["only_inertias"]))
+    modes = list(dict.fromkeys(k for r in rows for k in r["ratio"] if k != "forward solve"))
+    for m in modes:
+        pts = [(r["P"], r["ratio"][m]) for r in rows if m in r["ratio"]]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=m, ls="--" if m.startswith("auto") else "-")
+    ax.axhline(3.0, color="k", lw=0.8, ls=":", label="target 3×")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("number of differentiated parameters P")
+    ax.set_ylabel("gradient time / forward solve time")
+    ax.set_title(f"Gradient of a trajectory loss, variator, {gr['solver']}, rtol {gr['rtol']:g}")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- tables and targets
+
+
+def table(header, rows) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+def wp_section(wp, title) -> list:
+    curves = _curves(wp)
+    lines = [f"### {title}", "", f"Reference: {wp['reference']}. Horizon {wp['horizon']:g} s, "
+             f"{wp['n_report']} report times; sweep rtol {max(wp['tols']):g} … {min(wp['tols']):g}, atol = rtol/100. "
+             f"Figure: `figures/wp_{wp['problem']}.png`.", ""]
+    errs = [1e-4, 1e-6, 1e-8, 1e-10]
+    rows = []
+    for name in curves:
+        comp = wp["compile"].get(name)
+        best = min(curves[name], key=lambda p: p["error"])
+        rows.append([_label(name, wp["hand_label"])] + [fmt_t(time_at(curves, name, e)) for e in errs]
+                    + [f"{best['error']:.1e}", f"{comp['cpu']:.1f} s" if comp else "—"])
+    lines.append(table(["contender"] + [f"time at error {e:g}" for e in errs] + ["smallest error", "compile (CPU)"],
+                       rows))
+    lines += ["", "Time at a given error is interpolated log-log between the two sweep points that bracket it "
+              "(— when none do). Raw points, wall times and step counts: `results/wp_" + wp["problem"] + ".json`.", ""]
+    return lines
+
+
+def _median(xs):
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    return float(np.median(xs)) if xs else None
+
+
+def targets(R) -> tuple[list, dict]:
+    """Rows (target, goal, measured, met) and the headline numbers."""
+    rows, head = [], {}
+    ov, wpv, wpg, tp, gr, ct = (R.get(k) for k in ("overhead", "wp_variator", "wp_generic", "throughput",
+                                                   "gradients", "compile_time"))
+    if ov:
+        for r in ov["rhs_cost"]:
+            if r["problem"] != "variator":
+                continue
+            a, l_ = r["ratio"]["appell"], r["ratio"]["lagrange"]
+            rows.append([f"1. appell vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
+                         "≤ 1.2×", fmt_x(a), "yes" if a <= 1.2 else f"no (+{(a / 1.2 - 1) * 100:.0f} %)"])
+            rows.append([f"1. lagrange vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
+                         "≤ 1.5×", fmt_x(l_), "yes" if l_ <= 1.5 else f"no (+{(l_ / 1.5 - 1) * 100:.0f} %)"])
+            head[f"appell_over_hand_{r['solver']}"] = a
+            head[f"lagrange_over_hand_{r['solver']}"] = l_
+    if wpv:
+        cv = _curves(wpv)
+        sc = {s: _median([p["step_cost"] for p in cv.get(f"appell/{s}", [])]) for s in ("Tsit5", "Tsit5u", "DOP853",
+                                                                                       "Dopri8")}
+        if sc["DOP853"] and sc["Tsit5"]:
+            r = sc["DOP853"] / sc["Tsit5"]
+            rows.append(["2. DOP853 step / diffrax Tsit5 step (appell, variator, median over rtol)", "≤ 2×", fmt_x(r),
+                         "yes" if r <= 2 else f"no (+{(r / 2 - 1) * 100:.0f} %)"])
+            head["dop853_step_over_tsit5"] = r
+        for e in (1e-10, 1e-11):
+            td = time_at(cv, "appell/DOP853", e)
+            others = {s: time_at(cv, f"appell/{s}", e) for s in ("Tsit5", "Dopri8")}
+            if td is None or any(v is None for v in others.values()):
+                rows.append([f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)", "faster",
+                             "not bracketed", "—"])
+                continue
+            ok = all(td < v for v in others.values())
+            rows.append([f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)", "faster",
+                         f"DOP853 {fmt_t(td)}; Tsit5 {fmt_t(others['Tsit5'])}; Dopri8 {fmt_t(others['Dopri8'])}",
+                         "yes" if ok else "no"])
+        ts_sc = time_at(cv, "scipy/DOP853", 1e-8)
+        jax_best = {n: time_at(cv, n, 1e-8) for n in cv if n.startswith("appell/")}
+        jax_best = {k: v for k, v in jax_best.items() if v is not None}
+        if ts_sc and jax_best:
+            bn = min(jax_best, key=jax_best.get)
+            r = ts_sc / jax_best[bn]
+            rows.append([f"3. SciPy DOP853 / jaxnh ({bn}), single trajectory at error 1e-8, compiled solve", "≥ 25×",
+                         fmt_x(r), "yes" if r >= 25 else f"no ({r / 25 * 100:.0f} % of it)"])
+            head["scipy_over_jaxnh_single"] = r
+            head["scipy_dop853_at_1e-8"] = ts_sc
+        if ts_sc and tp:
+            big = [x for x in tp["rows"] if x["batch"] >= 1000 and x["kind"] != "hand"]
+            if big:
+                b = min(big, key=lambda x: x["per_trajectory"])
+                r = ts_sc / b["per_trajectory"]
+                rows.append([f"3. SciPy DOP853 / jaxnh batched ({b['solver']}, batch {b['batch']}, error "
+                             f"{b['error_member0']:.0e}), per trajectory", "≥ 150×", fmt_x(r),
+                             "yes" if r >= 150 else f"no ({r / 150 * 100:.0f} % of it)"])
+                head["scipy_over_jaxnh_batch"] = r
+    if gr:
+        for r in sorted(gr["rows"], key=lambda r: r["P"]):
+            a = r["ratio"]["auto (proposed)"]
+            cur = r["ratio"]["reverse RecursiveCheckpoint"]
+            rows.append([f"4. gradient / forward, P = {r['P']} (auto → {r['auto']}; today's default "
+                         f"{fmt_x(cur)})", "≤ 3×", fmt_x(a), "yes" if a <= 3 else f"no (+{(a / 3 - 1) * 100:.0f} %)"])
+    if ct:
+        for r in ct["rows"]:
+            if "error" in r or not r["kind"].startswith("simulate"):
+                continue
+            c = r["compile"]["cpu"]
+            rows.append([f"5. first-call compile: {r['label']} (CPU; wall {r['compile']['wall']:.1f} s)", "≤ 1.5 s",
+                         f"{c:.2f} s", "yes" if c <= 1.5 else f"no (+{(c / 1.5 - 1) * 100:.0f} %)"])
+    for wp in (wpv, wpg):
+        if not wp:
+            continue
+        for label, pick in (("today: diffrax Tsit5", lambda r: "Tsit5"),
+                            ("proposed default_solver(rtol)", lambda r: _solver_key(proposals.default_solver(r)))):
+            slow = default_slowdown(wp, pick)
+            if slow:
+                worst = max(slow.values())
+                rows.append([f"6. {wp['problem']}: {label}, slowest vs the fastest appell solver at the same error, "
+                             f"over rtol {max(slow):g} … {min(slow):g}", "≈ 1×", fmt_x(worst),
+                             "yes" if worst <= 1.15 else "no"])
+    return rows, head
+
+
+def _solver_key(solver) -> str:
+    name = type(solver).__name__
+    if name == "Tsit5" and type(solver).__module__.startswith("diffrax"):
+        return "Tsit5"
+    return "Tsit5u" if name == "Tsit5" else name
+
+
+def default_slowdown(wp, pick) -> dict:
+    """rtol -> time of the solver `pick(rtol)` picks / time of the fastest appell solver at the error it reaches."""
+    cv = _curves(wp)
+    out = {}
+    for r in wp["tols"]:
+        key = f"appell/{pick(r)}"
+        pts = [p for p in cv.get(key, []) if p["rtol"] == r]
+        if not pts:
+            continue
+        e, t = pts[0]["error"], pts[0]["time"]
+        best = [time_at(cv, n, e) for n in cv if n.startswith("appell/") and not n.endswith("Kvaerno5")]
+        best = [b for b in best if b is not None] + [t]
+        out[r] = t / min(best)
+    return out
+
+
+def default_section(R) -> list:
+    L = []
+    for k in ("wp_variator", "wp_generic"):
+        wp = R.get(k)
+        if not wp:
+            continue
+        today = default_slowdown(wp, lambda r: "Tsit5")
+        prop = default_slowdown(wp, lambda r: _solver_key(proposals.default_solver(r)))
+        cv = _curves(wp)
+        rows = []
+        for r in wp["tols"]:
+            pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items() if n.startswith("appell/")}
+            fastest = min(((n, time_at(cv, n, pts["appell/" + _solver_key(proposals.default_solver(r))]["error"]))
+                           for n in pts if pts[n] is not None), key=lambda x: x[1] if x[1] is not None else 1e9,
+                          default=(None, None))
+            rows.append([f"{r:g}", _solver_key(proposals.default_solver(r)), fmt_x(prop.get(r)), fmt_x(today.get(r)),
+                         (fastest[0] or "—").split("/")[-1]])
+        L += [f"**{wp['problem']}**", "", table(["rtol", "proposed default", "its time / fastest at that error",
+                                                  "diffrax Tsit5 (today) / fastest", "fastest appell solver"], rows), ""]
+    return L
+
+
+    return rows, head
+
+
+def build(R) -> tuple[str, dict]:
+    m = next((R[k]["machine"] for k in ("wp_variator", "overhead", "gradients", "throughput", "compile_time")
+              if R.get(k)), C.machine())
+    L = ["# jaxnh performance benchmarks (issue 4)", "",
+         "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`); "
+         "`python -m benchmarks.run_all --quick` is the short version. Every number below is written by "
+         "`benchmarks/report.py` from `benchmarks/results/*.json`.", "",
+         "## Machine and method", "",
+         f"* CPU: {m['cpu']}, {m['cores']} cores; {m['platform']}",
+         f"* Python {m['python']}, jax {m['jax']} (jaxlib {m['jaxlib']}), diffrax {m['diffrax']}, equinox "
+         f"{m['equinox']}, numpy {m['numpy']}, scipy {m['scipy']}, jaxnh {m['jaxnh']}; devices {m['devices']}",
+         f"* Load average when the runs started: {', '.join(f'{x:.1f}' for x in m['load_average'])} "
+         f"(the machine is shared); date {m['date']}",
+         f"* Proposals of /tmp/issue4_core.patch: {m['proposals_applied']}",
+         "* Times are **process CPU time** (`time.process_time`), median over interleaved rounds after "
+         "compilation; wall-clock medians are in the JSON files. On this shared machine wall time mostly "
+         "measured waiting for a core (a 3.5 ms solve took 3.3–20 ms of wall time, 3.3–3.7 ms of CPU time). "
+         "Ratios are medians of per-round ratios of contenders timed in the same round. Compile times are "
+         "`jit(...).lower(...).compile()`, CPU and wall; first-call times come from fresh processes.",
+         "* \"Compiled solve\" is `simulate`'s jitted inner function `jaxnh.simulate._integrate` with the "
+         "tolerances traced (one compilation per contender); \"through simulate\" is a plain `nh.simulate(...)` "
+         "call, whose argument checks run in Python on every call.", ""]
+    rows, head = targets(R)
+    L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
+    if R.get("wp_variator") or R.get("wp_generic"):
+        L += ["## Default solver", "", f"Proposed `default_solver(rtol)`: jaxnh DOP853 for rtol < "
+              f"{proposals.DOP853_BELOW_RTOL:g}, the unrolled Tsit5 otherwise. For each sweep tolerance: the "
+              "solver it picks, and how much slower it is than the fastest appell solver at the error it reaches "
+              "(times interpolated on the work-precision curves).", ""] + default_section(R)
+    if R.get("wp_variator") or R.get("wp_generic"):
+        L += ["## Work-precision", ""]
+        if R.get("wp_variator"):
+            L += wp_section(R["wp_variator"], "Variator (s = 2, m = 1), against the closed form")
+        if R.get("wp_generic"):
+            L += wp_section(R["wp_generic"], "Generic mechanism (s = 10, m = 3)")
+    ov = R.get("overhead")
+    if ov:
+        L += ["## Cost of automatic derivation", "",
+              "Same solver, tolerance (rtol 1e-8, atol 1e-10) and report times; ratios to the hand-written equations "
+              "(eq. (9) for the variator, Lagrange's equations written out for the generic mechanism).", ""]
+        rows = []
+        for r in ov["rhs_cost"]:
+            rows.append([r["problem"], f"{r['horizon']:g} s", C.SOLVER_LABELS[r["solver"]], fmt_t(r["time"]["hand"]),
+                         fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"]),
+                         fmt_x(r["ratio"].get("appell jit(simulate)")), fmt_x(r["ratio"].get("appell through simulate")),
+                         fmt_t(r["simulate_overhead"]["appell"]),
+                         f"{r['compile']['hand']['cpu']:.1f} / {r['compile']['appell']['cpu']:.1f} / "
+                         f"{r['compile']['lagrange']['cpu']:.1f} s"])
+        L += [table(["problem", "horizon", "solver", "hand-written", "appell / hand", "lagrange / hand",
+                     "appell jit(simulate) / hand", "appell through simulate / hand", "simulate's per-call cost",
+                     "compile hand / appell / lagrange (CPU)"], rows), ""]
+        if ov.get("records"):
+            L += ["### Pay for what you ask: recorded quantities", "",
+                  "Compiled solve in DOP853 at rtol 1e-8 with 1001 report times; time relative to `record=()`.", ""]
+            keys = list(ov["records"][0]["ratio"])
+            L += [table(["problem", "method", "record=() time"] + keys,
+                        [[r["problem"], r["method"], fmt_t(r["time"]["nothing"])] + [fmt_x(r["ratio"][k]) for k in keys]
+                         for r in ov["records"]]), ""]
+        if ov.get("rheonomic"):
+            L += ["### Pay for what you ask: time-invariant against rheonomic", "",
+                  "Generic mechanism, DOP853, rtol 1e-8: time per step (the step counts differ).", ""]
+            L += [table(["mechanism", "steps (appell/lagrange/hand)", "appell per step", "lagrange per step",
+                         "hand per step", "appell / hand", "lagrange / hand"],
+                        [["rheonomic" if r["rheonomic"] else "time-invariant",
+                          f"{r['steps']['appell']}/{r['steps']['lagrange']}/{r['steps']['hand']}",
+                          fmt_t(r["step_time"]["appell"]), fmt_t(r["step_time"]["lagrange"]),
+                          fmt_t(r["step_time"]["hand"]), fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"])]
+                         for r in ov["rheonomic"]]), ""]
+    tp = R.get("throughput")
+    if tp:
+        L += ["## Batch throughput", "", f"Variator, rtol {tp['rtol']:g}, `jit(vmap(...))`; figure "
+              "`figures/throughput.png`. Per-trajectory time = batch time / batch size.", ""]
+        L += [table(["contender", "batch", "per trajectory (CPU)", "per trajectory (wall)", "max steps in batch",
+                     "error (member 0)", "compile (CPU)"],
+                    [[f"{r['kind']}, {C.SOLVER_LABELS[r['solver']]}", r["batch"], fmt_t(r["per_trajectory"]),
+                      fmt_t(r["per_trajectory_wall"]), r["max_steps_in_batch"], f"{r['error_member0']:.1e}",
+                      f"{r['compile']['cpu']:.1f} s"] for r in tp["rows"]]), ""]
+    gr = R.get("gradients")
+    if gr:
+        L += ["## Gradients", "", f"Variator, {C.SOLVER_LABELS[gr['solver']]}, rtol {gr['rtol']:g}: time of the "
+              "gradient of a trajectory loss divided by the time of the loss (one forward solve), median of "
+              "per-round ratios; figure `figures/gradients.png`. All modes agree to the relative difference "
+              "shown (they differentiate the same discrete solution).", ""]
+        modes = list(dict.fromkeys(k for r in gr["rows"] for k in r["ratio"] if k != "forward solve"))
+        L += [table(["P", "forward solve"] + modes + ["max rel. difference to reverse", "compile (CPU) RC / FS"],
+                    [[r["P"], fmt_t(r["time"]["forward solve"])] + [fmt_x(r["ratio"].get(k)) for k in modes]
+                     + [f"{max(r['relative_difference_to_reverse'].values()):.0e}",
+                        f"{r['compile']['reverse RecursiveCheckpoint']['cpu']:.1f} / "
+                        f"{r['compile']['ForwardSensitivity (proposed)']['cpu']:.1f} s"]
+                     for r in sorted(gr["rows"], key=lambda r: r["P"])]), ""]
+    ct = R.get("compile_time")
+    if ct:
+        L += ["## First-call time (fresh process)", "",
+              table(["scenario", "import", "first call (CPU / wall)", "second call (CPU)", "compile = first − second (CPU / wall)"],
+                    [[r["label"], f"{r['import_s']:.1f} s", f"{r['first']['cpu']:.2f} / {r['first']['wall']:.2f} s",
+                      fmt_t(r["second"]["cpu"]), f"{r['compile']['cpu']:.2f} / {r['compile']['wall']:.2f} s"]
+                     for r in ct["rows"] if "error" not in r]), ""]
+    others = [(p, C.HERE / p) for p in ("STABILITY.md", "CALIBRATION.md", "SWEEP.md")]
+    present = [p for p, path in others if path.exists()]
+    if present:
+        L += ["## Other benchmark reports", "", "Written by their own scripts (run by `run_all` when present): "
+              + ", ".join(f"[{p}]({p})" for p in present) + ".", ""]
+    return "\n".join(L) + "\n", head
+
+
+def main():
+    names = ("wp_variator", "wp_generic", "overhead", "throughput", "gradients", "compile_time")
+    R = {k: C.load(k) for k in names}
+    C.FIGURES.mkdir(exist_ok=True)
+    for k in ("wp_variator", "wp_generic"):
+        if R.get(k):
+            fig_wp(R[k], C.FIGURES / f"{k.replace('wp_', 'wp_')}.png")
+    if R.get("throughput"):
+        fig_throughput(R["throughput"], C.FIGURES / "throughput.png")
+    if R.get("gradients"):
+        fig_gradients(R["gradients"], C.FIGURES / "gradients.png")
+    text, head = build(R)
+    (C.HERE / "RESULTS.md").write_text(text)
+    C.save("headline", dict(head))
+    C.log(f"[report] wrote {C.HERE / 'RESULTS.md'}")
+    for k, v in head.items():
+        C.log(f"  {k}: {v:.3g}")
+
+
+if __name__ == "__main__":
+    main()
