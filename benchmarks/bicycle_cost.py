@@ -3,9 +3,12 @@
 Run from the repository root:
 
     python benchmarks/bicycle_cost.py              # jaxnh, then SymPy if installed
-    python benchmarks/bicycle_cost.py --no-sympy   # jaxnh only
+    python benchmarks/bicycle_cost.py --no-sympy   # jaxnh only (also --quick)
     python benchmarks/bicycle_cost.py --sympy-timeout 1800
     python benchmarks/bicycle_cost.py --sympy-numeric   # SymPy with the benchmark numbers substituted first
+
+Writes benchmarks/BICYCLE.md and benchmarks/results/bicycle_cost.json
+(`--out` to change the Markdown path).
 
 Measured, wall clock, in this process (first calls include tracing and XLA
 compilation; the machine's load matters, so the script also prints CPU time):
@@ -15,7 +18,11 @@ compilation; the machine's load matters, so the script also prints CPU time):
    lean/steer state matrix at 5 m/s — first call and a repeat call — and to
    the matrices at 101 speeds in one vmapped call.
 2. jaxnh: a 5 s nonlinear simulation (Lagrange's equations with multipliers,
-   8 coordinates, Tsit5, rtol 1e-8), first call and repeat.
+   8 coordinates, rtol 1e-8, the default solver — jaxnh's Tsit5 with its
+   stages unrolled), first call and repeat, with its error against a reference
+   run at rtol 1e-12 (not timed); the same run with diffrax's Tsit5, whose
+   stages are a loop (the vector field is compiled once instead of once per
+   stage), shows what unrolling costs in compile time for a large vector field.
 3. SymPy (the `bench` extra; skipped if absent): the same model, coordinates
    and geometry written for `sympy.physics.mechanics.KanesMethod`: time to
    derive Kane's equations, to linearise them about upright running
@@ -28,6 +35,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import pathlib
 import sys
 import time
 
@@ -44,6 +52,7 @@ def since(start):
 
 
 def jaxnh_costs():
+    import diffrax
     import jax
     import jax.numpy as jnp
 
@@ -72,19 +81,34 @@ def jaxnh_costs():
     ts = jnp.linspace(0.0, 5.0, 101)
     mech = bicycle.mechanism("lagrange")
 
-    def simulate():
-        sol = nh.simulate(mech, p, q, qd, ts, method="lagrange", independent=bicycle.INDEPENDENT, rtol=1e-8, atol=1e-10)
+    def simulate(solver=None, rtol=1e-8, atol=1e-10):
+        sol = nh.simulate(mech, p, q, qd, ts, method="lagrange", independent=bicycle.INDEPENDENT, rtol=rtol, atol=atol,
+                          solver=solver, record=("energy",))
         jax.block_until_ready(sol.q)
         return sol
 
     start = clock()
     sol = simulate()
-    out["5 s nonlinear simulation, first call"] = since(start)
+    out["5 s nonlinear simulation, first call (default solver)"] = since(start)
     start = clock()
     sol = simulate()
     out["5 s nonlinear simulation, repeat"] = since(start)
+    start = clock()
+    sol_d = simulate(diffrax.Tsit5())
+    out["5 s nonlinear simulation, first call, diffrax.Tsit5"] = since(start)
+    start = clock()
+    sol_d = simulate(diffrax.Tsit5())
+    out["5 s nonlinear simulation, repeat, diffrax.Tsit5"] = since(start)
+    ref = simulate(diffrax.Dopri8(), rtol=1e-12, atol=1e-14)  # reference, not timed
     out["_steps"] = int(sol.stats["num_steps"])
+    out["_steps_diffrax"] = int(sol_d.stats["num_steps"])
+    out["_sim_error"] = float(np.abs(np.asarray(sol.q) - np.asarray(ref.q)).max())
+    out["_sim_error_diffrax"] = float(np.abs(np.asarray(sol_d.q) - np.asarray(ref.q)).max())
+    out["_energy_drift"] = float(np.ptp(np.asarray(sol.energy)))
+    out["_final_roll"] = float(sol.q[-1, bicycle.ROLL])
     out["_eig5"] = np.sort_complex(np.linalg.eigvals(A))
+    pub = np.sort_complex(np.array(bicycle.PUBLISHED["eigenvalues_v5"], dtype=complex))
+    out["_eig5_error"] = float(np.abs(out["_eig5"] - pub).max())
     return out
 
 
@@ -173,52 +197,134 @@ def sympy_costs(queue, numeric=False):
     # states: x, y, yaw, roll, rear, steer, front, u_roll, u_rear, u_steer
     idx = [3, 5, 7, 9]
     res["evaluate at the benchmark parameters, v = 5 m/s"] = since(start)
-    res["_eig5"] = np.sort_complex(np.linalg.eigvals(A5[np.ix_(idx, idx)]))
+    A4 = A5[np.ix_(idx, idx)]
+    if np.all(np.isfinite(A4)):
+        res["_eig5"] = np.sort_complex(np.linalg.eigvals(A4))
+    else:
+        res["_note"] = f"SymPy's linearised matrix is not finite at the operating point ({int(np.sum(~np.isfinite(A4)))} of 16 entries)"
     queue.put(dict(res))
+
+
+def _rows(res):
+    return [(k, w, c) for k, (w, c) in ((k, v) for k, v in res.items() if not k.startswith("_"))]
+
+
+def _machine():
+    import platform
+
+    import jax
+
+    return dict(cores=os.cpu_count(), load_average=list(os.getloadavg()), python=platform.python_version(),
+                jax=jax.__version__, date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
+
+
+def write_report(path, jx, sy, sympy_status, machine):
+    """BICYCLE.md (Markdown) and results/bicycle_cost.json from the measured numbers."""
+    import json
+
+    L = ["# Cost of the Whipple bicycle: jaxnh (autodiff) and SymPy (KanesMethod)", "",
+         "Written by `python benchmarks/bicycle_cost.py` (see its docstring for what is timed). "
+         f"Machine: {machine['cores']} cores, load average {machine['load_average'][0]:.1f} at the start "
+         f"(the machine is shared: wall times include waiting for a core, CPU times are all threads of the process); "
+         f"JAX {machine['jax']}, {machine['date']}.", ""]
+    if jx:
+        L += ["## jaxnh", "", "| step | wall s | CPU s |", "|---|---:|---:|"]
+        L += [f"| {k} | {w:.2f} | {c:.2f} |" for k, w, c in _rows(jx)]
+        L += ["", f"* State matrix at 5 m/s: eigenvalues {np.array2string(jx['_eig5'], precision=10)}; "
+              f"max |jaxnh − published| = {jx['_eig5_error']:.1e}.",
+              f"* Nonlinear run (roll-rate kick 0.5 rad/s at 5 m/s, 5 s, rtol 1e-8, atol 1e-10): default solver "
+              f"{jx['_steps']} steps, max coordinate error {jx['_sim_error']:.1e} against a run at rtol 1e-12 "
+              f"(diffrax.Dopri8); diffrax.Tsit5 {jx['_steps_diffrax']} steps, error {jx['_sim_error_diffrax']:.1e}; "
+              f"energy drift {jx['_energy_drift']:.1e} J; final roll {jx['_final_roll']:+.6f} rad.", ""]
+    L += ["## SymPy", "", sympy_status, ""]
+    if sy:
+        L += ["| step | wall s | CPU s |", "|---|---:|---:|"]
+        L += [f"| {k} | {w:.2f} | {c:.2f} |" for k, w, c in _rows(sy)]
+        L += [""]
+        if "_note" in sy:
+            L += [f"* {sy['_note']}.", ""]
+        if "_eig5" in sy:
+            L += [f"* Eigenvalues at 5 m/s {np.array2string(sy['_eig5'], precision=10)}; "
+                  f"max |SymPy − published| = {sy['_eig5_error']:.1e}.", ""]
+    pathlib.Path(path).write_text("\n".join(L))
+    jpath = pathlib.Path(__file__).resolve().parent / "results" / "bicycle_cost.json"
+    jpath.parent.mkdir(exist_ok=True)
+
+    def clean(d):
+        return {k: (np.asarray(v).tolist() if not np.iscomplexobj(v) else [[z.real, z.imag] for z in np.ravel(v)])
+                for k, v in d.items()}
+
+    jpath.write_text(json.dumps(dict(jaxnh=clean(jx), sympy=clean(sy), sympy_status=sympy_status, machine=machine), indent=1))
+    print(f"wrote {path} and {jpath}")
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--no-sympy", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="the same as --no-sympy")
     ap.add_argument("--no-jaxnh", action="store_true", help="SymPy only")
     ap.add_argument("--sympy-timeout", type=float, default=1200.0, help="seconds before giving up on SymPy")
     ap.add_argument("--sympy-numeric", action="store_true",
                     help="give SymPy the benchmark numbers from the start instead of symbolic parameters")
+    ap.add_argument("--out", default=str(pathlib.Path(__file__).resolve().parent / "BICYCLE.md"),
+                    help="Markdown report (default benchmarks/BICYCLE.md)")
     args = ap.parse_args()
+    machine = _machine()
     print(f"CPU cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
     jx = {} if args.no_jaxnh else jaxnh_costs()
     if jx:
         print("jaxnh (autodiff, jit):                                  wall s    CPU s")
-        for k, (w, c) in ((k, v) for k, v in jx.items() if not k.startswith("_")):
+        for k, w, c in _rows(jx):
             print(f"  {k:<54}{w:8.2f} {c:8.2f}")
-        print(f"  (nonlinear run: {jx['_steps']} steps; eigenvalues at 5 m/s {jx['_eig5']})")
-    if args.no_sympy:
-        return
-    try:
-        import sympy  # noqa: F401
-    except ImportError:
-        print("SymPy not installed (pip install 'jaxnh[bench]'): skipping the KanesMethod comparison")
-        return
+        print(f"  (eigenvalues at 5 m/s {jx['_eig5']}, |jaxnh − published| = {jx['_eig5_error']:.1e}; nonlinear run: "
+              f"{jx['_steps']} steps, error {jx['_sim_error']:.1e}; diffrax.Tsit5 {jx['_steps_diffrax']} steps, "
+              f"error {jx['_sim_error_diffrax']:.1e})")
+    res, status = {}, "Not run (`--no-sympy`)."
+    if not (args.no_sympy or args.quick):
+        try:
+            import sympy
+        except ImportError:
+            sympy = None
+            status = "SymPy not installed (pip install 'jaxnh[bench]'): the KanesMethod comparison was skipped."
+            print(status)
+        if sympy is not None:
+            res, status = run_sympy(args)
+    write_report(args.out, jx, res, status, machine)
+
+
+def run_sympy(args):
+    import sympy
+
     queue = mp.get_context("spawn").Queue()
     proc = mp.get_context("spawn").Process(target=sympy_costs, args=(queue, args.sympy_numeric))
     proc.start()
-    proc.join(args.sympy_timeout)
     res = {}
+    deadline = time.perf_counter() + args.sympy_timeout
+    while proc.is_alive() and time.perf_counter() < deadline:
+        try:
+            res = queue.get(timeout=1.0)  # drain as phases finish (a full pipe would block the child)
+        except Exception:
+            pass
     while not queue.empty():
         res = queue.get()
+    kind = "numeric parameters" if args.sympy_numeric else "symbolic parameters"
     if proc.is_alive():
         proc.terminate()
-        print(f"SymPy did not finish within {args.sympy_timeout:.0f} s (wall); phases completed:")
+        status = (f"SymPy {sympy.__version__} (KanesMethod, same model, {kind}) did not finish within "
+                  f"{args.sympy_timeout:.0f} s (wall); the phases it completed are listed.")
     else:
-        kind = "numeric parameters" if args.sympy_numeric else "symbolic parameters"
-        print(f"SymPy (KanesMethod, same model, {kind}):   wall s    CPU s")
-    for k, (w, c) in ((k, v) for k, v in res.items() if not k.startswith("_")):
+        status = f"SymPy {sympy.__version__} (KanesMethod, same model, {kind}):"
+    print(status)
+    for k, w, c in _rows(res):
         print(f"  {k:<54}{w:8.2f} {c:8.2f}")
+    if "_note" in res:
+        print("  " + res["_note"])
     if "_eig5" in res:
         from jaxnh.models.bicycle import PUBLISHED
 
-        err = np.abs(res["_eig5"] - np.sort_complex(np.array(PUBLISHED["eigenvalues_v5"]))).max()
-        print(f"  eigenvalues at 5 m/s {res['_eig5']}; |SymPy − published| = {err:.1e}")
+        res["_eig5_error"] = float(np.abs(res["_eig5"] - np.sort_complex(np.array(PUBLISHED["eigenvalues_v5"]))).max())
+        print(f"  eigenvalues at 5 m/s {res['_eig5']}; |SymPy − published| = {res['_eig5_error']:.1e}")
+    return res, status
 
 
 if __name__ == "__main__":

@@ -25,16 +25,33 @@ import sys
 import time
 from typing import Callable
 
-import diffrax
-import jax
-import jax.numpy as jnp
-import numpy as np
+# XLA on CPU runs independent operations of one program on a thread pool whose
+# idle workers spin: the process then burns CPU time waiting. Measured here: a
+# "lagrange" solve in the unrolled Tsit5 took 49–130 ms of CPU time (median 63)
+# with XLA's thread pool on both cores, 45–55 ms (median 51) with the process
+# pinned to one core; XLA's flags below alone did not remove the spread. So each
+# benchmark process is pinned to one core before JAX starts (XLA sizes its pools
+# from the affinity mask) and its CPU time is what a call costs on that core.
+# These solves are too small to gain from threads. JAXNH_BENCH_XLA_THREADS=default
+# keeps XLA's own setting (no pinning, no flags).
+XLA_SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+PINNED_CPU = None
+if os.environ.get("JAXNH_BENCH_XLA_THREADS") != "default":
+    if "intra_op_parallelism" not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + XLA_SINGLE_THREAD).strip()
+    if hasattr(os, "sched_setaffinity"):
+        _cpus = sorted(os.sched_getaffinity(0))
+        PINNED_CPU = _cpus[os.getpid() % len(_cpus)]  # spread concurrent benchmark processes
+        os.sched_setaffinity(0, {PINNED_CPU})
 
-import jaxnh as nh
-from jaxnh.equations import formulation
-from jaxnh.solvers import DOP853
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
 
-from . import proposals
+import jaxnh as nh  # noqa: E402
+from jaxnh.equations import formulation  # noqa: E402
+from jaxnh.solvers import DOP853, Tsit5  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -42,17 +59,17 @@ FIGURES = HERE / "figures"
 
 _integrate = sys.modules["jaxnh.simulate"]._integrate
 
-# label -> factory; "Tsit5u" is the proposed unrolled Tsit5 (jaxnh.solvers.Tsit5 once applied)
+# label -> factory; "Tsit5u" is jaxnh's unrolled Tsit5 (jaxnh.solvers.Tsit5), "Tsit5" diffrax's
 SOLVERS: dict[str, Callable] = {
     "Tsit5": diffrax.Tsit5,
-    "Tsit5u": proposals.Tsit5,
+    "Tsit5u": Tsit5,
     "Dopri5": diffrax.Dopri5,
     "Dopri8": diffrax.Dopri8,
     "DOP853": DOP853,
     "Kvaerno5": diffrax.Kvaerno5,
 }
 SOLVER_LABELS = {
-    "Tsit5": "diffrax Tsit5", "Tsit5u": "Tsit5 unrolled (proposed)", "Dopri5": "diffrax Dopri5",
+    "Tsit5": "diffrax Tsit5", "Tsit5u": "jaxnh Tsit5 (unrolled)", "Dopri5": "diffrax Dopri5",
     "Dopri8": "diffrax Dopri8", "DOP853": "jaxnh DOP853", "Kvaerno5": "diffrax Kvaerno5",
 }
 
@@ -203,9 +220,32 @@ def machine() -> dict:
         jax=jax.__version__, jaxlib=jaxlib.__version__, diffrax=dfx.__version__, equinox=equinox.__version__,
         numpy=np.__version__, scipy=scipy.__version__, jaxnh=nh.__version__,
         devices=[str(d) for d in jax.devices()], load_average=list(os.getloadavg()),
+        xla_flags=os.environ.get("XLA_FLAGS", ""), pinned_cpu=PINNED_CPU,
         date=datetime.datetime.now().isoformat(timespec="seconds"),
-        proposals_applied=proposals.applied(),
+        jaxnh_revision=_revision(),
     )
+
+
+def solver_key(solver) -> str:
+    """The SOLVERS label of a solver instance ("Tsit5" is diffrax's, "Tsit5u" jaxnh's unrolled one)."""
+    if isinstance(solver, Tsit5):
+        return "Tsit5u"
+    return type(solver).__name__
+
+
+def _revision() -> str:
+    """git commit of the working tree, with "+changes" when it has uncommitted edits."""
+    import subprocess
+
+    try:
+        root = str(HERE.parent)
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root,
+                             timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "jaxnh"], capture_output=True,
+                               text=True, cwd=root, timeout=10).stdout.strip()
+        return (rev or "unknown") + (" + uncommitted changes in jaxnh/" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
 
 
 def save(name: str, data: dict) -> pathlib.Path:

@@ -8,6 +8,8 @@ typed by hand. Run after the benchmarks (run_all does):
 
 from __future__ import annotations
 
+from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+
 import math
 
 import matplotlib
@@ -16,8 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import common as C  # noqa: E402
-from . import proposals  # noqa: E402
+from jaxnh.simulate import DOP853_BELOW_RTOL, default_solver  # noqa: E402
 
 SOLVER_COLORS = {"Tsit5": "tab:blue", "Tsit5u": "tab:cyan", "Dopri5": "tab:green", "Dopri8": "tab:olive",
                  "DOP853": "tab:red", "Kvaerno5": "tab:purple", "RK45": "tab:gray", "LSODA": "tab:brown",
@@ -59,74 +60,96 @@ def time_at(curves, name, err):
 # --------------------------------------------------------------------------- figures
 
 
+def _plot_curve(ax, pts, name, label, y="error", **kw):
+    kind, solver = name.split("/")
+    ls, mk = METHOD_STYLE["numpy" if kind == "scipy" else kind]
+    xs = [p["time"] for p in pts] if y == "error" else [p["rtol"] for p in pts]
+    ys = [p["error"] for p in pts] if y == "error" else [p["step_cost"] * 1e6 for p in pts]
+    ax.loglog(xs, ys, ls=ls, marker=mk, ms=4, lw=1.4, color=SOLVER_COLORS.get(solver, "k"), label=label, **kw)
+
+
 def fig_wp(wp, path):
+    """Three panels: (a) solvers (jaxnh appell in each solver, SciPy); (b) formulations (appell, lagrange,
+    hand-written) in the two default solvers and diffrax Tsit5; (c) cost per step against rtol."""
     curves = _curves(wp)
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(15, 6.5), gridspec_kw=dict(width_ratios=[1.6, 1]))
+    fig, axes = plt.subplots(1, 3, figsize=(19, 6.4), gridspec_kw=dict(width_ratios=[1.25, 1.25, 1]))
+    ax, bx, cx = axes
     for name, pts in curves.items():
         kind, solver = name.split("/")
-        method = kind if kind != "scipy" else "numpy"
-        ls, mk = METHOD_STYLE[method]
-        e = [p["error"] for p in pts]
-        t = [p["time"] for p in pts]
-        ax.loglog(t, e, ls=ls, marker=mk, ms=4, color=SOLVER_COLORS.get(solver, "k"), label=_label(name, "by hand"))
-        if kind != "scipy":
-            ax2.loglog([p["rtol"] for p in pts], [p["step_cost"] * 1e6 for p in pts], ls=ls, marker=mk, ms=4,
-                       color=SOLVER_COLORS.get(solver, "k"))
-    ax.set_xlabel("run time per solve (s, process CPU time, median)")
-    ax.set_ylabel("max abs error over report times")
-    ax.set_title(f"Work-precision: {wp['problem']} ({wp['horizon']:g} s, {wp['n_report']} report times)")
-    ax.grid(True, which="major", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2, loc="lower left")
-    ax2.set_xlabel("rtol (atol = rtol/100)")
-    ax2.set_ylabel("time per step (µs)")
-    ax2.set_title("cost per step (incl. saving at the report times)")
-    ax2.invert_xaxis()
-    ax2.grid(True, which="major", alpha=0.3)
+        if kind in ("appell", "scipy"):
+            _plot_curve(ax, pts, name, ("SciPy " + solver) if kind == "scipy" else C.SOLVER_LABELS.get(solver, solver))
+        if solver in ("Tsit5", "Tsit5u", "DOP853") and kind != "scipy":
+            _plot_curve(bx, pts, name, _label(name, "by hand"))
+        if kind == "appell" and pts[0].get("step_cost"):
+            _plot_curve(cx, pts, name, C.SOLVER_LABELS.get(solver, solver), y="step")
+    ax.set_title("(a) solvers: jaxnh \"appell\" (solid) vs SciPy solve_ivp\non a NumPy RHS (dash-dot)")
+    bx.set_title("(b) formulations: appell (solid), lagrange (dashed),\nhand-written equations (dotted)")
+    cx.set_title("(c) CPU time per step, jaxnh appell\n(includes the fixed per-call cost)")
+    for x in (ax, bx):
+        x.set_xlabel("run time per solve (s; process CPU time, median)")
+        x.set_ylabel("max abs error over the report times")
+        x.axhline(1e-8, color="k", lw=0.6, ls=":")
+    cx.set_xlabel("rtol (atol = rtol/100)")
+    cx.set_ylabel("µs per step")
+    cx.invert_xaxis()
+    for x in axes:
+        x.grid(True, which="major", alpha=0.3)
+        x.legend(fontsize=8, loc="best")
+    fig.suptitle(f"Work-precision, {wp['problem']} ({wp['horizon']:g} s, {wp['n_report']} report times); "
+                 f"rtol {max(wp['tols']):g} … {min(wp['tols']):g}; reference: {wp['reference']}", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def fig_throughput(tp, path):
-    fig, ax = plt.subplots(figsize=(7.5, 5))
+def fig_throughput(tp, path, scipy_time=None):
+    fig, ax = plt.subplots(figsize=(8, 5.2))
     groups = {}
     for r in tp["rows"]:
         groups.setdefault((r["kind"], r["solver"]), []).append(r)
     for (kind, solver), rows in groups.items():
         rows.sort(key=lambda r: r["batch"])
         ls, mk = METHOD_STYLE[kind]
-        ax.loglog([r["batch"] for r in rows], [r["per_trajectory"] for r in rows], ls=ls, marker=mk,
-                  color=SOLVER_COLORS.get(solver, "k"), label=f"{kind}, {C.SOLVER_LABELS.get(solver, solver)} (CPU)")
-        ax.loglog([r["batch"] for r in rows], [r["per_trajectory_wall"] for r in rows], ls=ls, marker=mk, alpha=0.35,
-                  color=SOLVER_COLORS.get(solver, "k"), label=f"{kind}, {solver} (wall)")
-    ax.set_xlabel("batch size (vmap)")
-    ax.set_ylabel("time per trajectory (s)")
-    ax.set_title(f"Batch throughput, variator, rtol {tp['rtol']:g}")
+        who = "eq. (9) by hand" if kind == "hand" else f"jaxnh {kind}"
+        ax.loglog([r["batch"] for r in rows], [r["per_trajectory"] for r in rows], ls=ls, marker=mk, lw=1.5,
+                  color=SOLVER_COLORS.get(solver, "k"), label=f"{who}, {C.SOLVER_LABELS.get(solver, solver)}")
+    if scipy_time:
+        ax.axhline(scipy_time, color="tab:gray", ls="-.", lw=1.2, label="SciPy DOP853, one trajectory at error 1e-8")
+        ax.axhline(scipy_time / 150, color="k", ls=":", lw=0.8, label="target: SciPy DOP853 / 150")
+    ax.set_xlabel("batch size (jax.vmap)")
+    ax.set_ylabel("CPU time per trajectory (s)")
+    ax.set_title(f"Batch throughput, variator over 10 s, rtol {tp['rtol']:g} (error ≈ 1e-8)")
     ax.grid(True, which="major", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
 def fig_gradients(gr, path):
-    fig, ax = plt.subplots(figsize=(7.5, 5))
+    fig, ax = plt.subplots(figsize=(8, 5.2))
     rows = sorted(gr["rows"], key=lambda r: (r["P"], r["only_inertias"]))
     modes = list(dict.fromkeys(k for r in rows for k in r["ratio"] if k != "forward solve"))
     for m in modes:
         pts = [(r["P"], r["ratio"][m]) for r in rows if m in r["ratio"]]
         if pts:
-            ax.plot(*zip(*pts), marker="o", label=m, ls="--" if m.startswith("auto") else "-")
-    ax.axhline(3.0, color="k", lw=0.8, ls=":", label="target 3×")
+            auto = m.startswith("auto")
+            ax.plot(*zip(*pts), marker="o", label=m, ls="--" if auto else "-", lw=3 if auto else 1.4,
+                    color="k" if auto else None, alpha=0.6 if auto else 1.0, zorder=3 if auto else 2)
+    ax.axhline(3.0, color="tab:red", lw=0.9, ls=":", label="target 3×")
+    if gr.get("forward_max_parameters"):
+        ax.axvline(gr["forward_max_parameters"], color="gray", lw=0.9, ls="-.",
+                   label=f"FORWARD_MAX_PARAMETERS = {gr['forward_max_parameters']} (counts q0, qd0 too)")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("number of differentiated parameters P")
-    ax.set_ylabel("gradient time / forward solve time")
-    ax.set_title(f"Gradient of a trajectory loss, variator, {gr['solver']}, rtol {gr['rtol']:g}")
+    ax.set_ylabel("gradient CPU time / forward solve CPU time")
+    ax.set_title(f"Gradient of a trajectory loss, variator, {C.SOLVER_LABELS.get(gr['solver'], gr['solver'])}, "
+                 f"rtol {gr['rtol']:g}")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -220,7 +243,7 @@ def targets(R) -> tuple[list, dict]:
                 head["scipy_over_jaxnh_batch"] = r
     if gr:
         for r in sorted(gr["rows"], key=lambda r: r["P"]):
-            a = r["ratio"]["auto (proposed)"]
+            a = r["ratio"]["auto (simulate default)"]
             cur = r["ratio"]["reverse RecursiveCheckpoint"]
             rows.append([f"4. gradient / forward, P = {r['P']} (auto → {r['auto']}; today's default "
                          f"{fmt_x(cur)})", "≤ 3×", fmt_x(a), "yes" if a <= 3 else f"no (+{(a / 3 - 1) * 100:.0f} %)"])
@@ -234,8 +257,8 @@ def targets(R) -> tuple[list, dict]:
     for wp in (wpv, wpg):
         if not wp:
             continue
-        for label, pick in (("today: diffrax Tsit5", lambda r: "Tsit5"),
-                            ("proposed default_solver(rtol)", lambda r: _solver_key(proposals.default_solver(r)))):
+        for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
+                            ("default_solver(rtol)", lambda r: C.solver_key(default_solver(r)))):
             slow = default_slowdown(wp, pick)
             if slow:
                 worst = max(slow.values())
@@ -243,13 +266,6 @@ def targets(R) -> tuple[list, dict]:
                              f"over rtol {max(slow):g} … {min(slow):g}", "≈ 1×", fmt_x(worst),
                              "yes" if worst <= 1.15 else "no"])
     return rows, head
-
-
-def _solver_key(solver) -> str:
-    name = type(solver).__name__
-    if name == "Tsit5" and type(solver).__module__.startswith("diffrax"):
-        return "Tsit5"
-    return "Tsit5u" if name == "Tsit5" else name
 
 
 def default_slowdown(wp, pick) -> dict:
@@ -275,22 +291,48 @@ def default_section(R) -> list:
         if not wp:
             continue
         today = default_slowdown(wp, lambda r: "Tsit5")
-        prop = default_slowdown(wp, lambda r: _solver_key(proposals.default_solver(r)))
+        prop = default_slowdown(wp, lambda r: C.solver_key(default_solver(r)))
         cv = _curves(wp)
         rows = []
         for r in wp["tols"]:
             pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items() if n.startswith("appell/")}
-            fastest = min(((n, time_at(cv, n, pts["appell/" + _solver_key(proposals.default_solver(r))]["error"]))
+            fastest = min(((n, time_at(cv, n, pts["appell/" + C.solver_key(default_solver(r))]["error"]))
                            for n in pts if pts[n] is not None), key=lambda x: x[1] if x[1] is not None else 1e9,
                           default=(None, None))
-            rows.append([f"{r:g}", _solver_key(proposals.default_solver(r)), fmt_x(prop.get(r)), fmt_x(today.get(r)),
+            rows.append([f"{r:g}", C.solver_key(default_solver(r)), fmt_x(prop.get(r)), fmt_x(today.get(r)),
                          (fastest[0] or "—").split("/")[-1]])
-        L += [f"**{wp['problem']}**", "", table(["rtol", "proposed default", "its time / fastest at that error",
-                                                  "diffrax Tsit5 (today) / fastest", "fastest appell solver"], rows), ""]
+        L += [f"**{wp['problem']}**", "", table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
+                                                  "diffrax Tsit5 (previous default) / fastest", "fastest appell solver"],
+                                                 rows), ""]
     return L
 
 
-    return rows, head
+
+
+THRESHOLD_CANDIDATES = [10.0**-k for k in range(4, 12)]
+
+
+def threshold_scan(R) -> tuple[list, float | None]:
+    """For each candidate switch point θ (DOP853 for rtol < θ, jaxnh Tsit5 above): the slowdown of that
+    rule against the fastest appell solver at the error reached, geometric mean and worst over the sweep
+    of each work-precision problem. Returns (table rows, θ with the smallest mean log slowdown over both)."""
+    wps = [R[k] for k in ("wp_variator", "wp_generic") if R.get(k)]
+    rows, score = [], {}
+    for th in THRESHOLD_CANDIDATES:
+        row, logs = [f"{th:g}" + (" (current)" if th == DOP853_BELOW_RTOL else "")], []
+        for wp in wps:
+            sl = default_slowdown(wp, lambda r, th=th: "DOP853" if r < th else "Tsit5u")
+            v = [x for x in sl.values() if x is not None and math.isfinite(x)]
+            if not v:
+                row += ["—", "—"]
+                continue
+            logs += [math.log(x) for x in v]
+            row += [fmt_x(math.exp(sum(math.log(x) for x in v) / len(v))), fmt_x(max(v))]
+        rows.append(row)
+        if logs:
+            score[th] = sum(logs) / len(logs)
+    best = min(score, key=score.get) if score else None
+    return rows, best
 
 
 def build(R) -> tuple[str, dict]:
@@ -306,7 +348,10 @@ def build(R) -> tuple[str, dict]:
          f"{m['equinox']}, numpy {m['numpy']}, scipy {m['scipy']}, jaxnh {m['jaxnh']}; devices {m['devices']}",
          f"* Load average when the runs started: {', '.join(f'{x:.1f}' for x in m['load_average'])} "
          f"(the machine is shared); date {m['date']}",
-         f"* Proposals of /tmp/issue4_core.patch: {m['proposals_applied']}",
+         f"* jaxnh revision: {m.get('jaxnh_revision', 'unknown')}",
+         f"* Each benchmark process pinned to one core (core {m.get('pinned_cpu')} for this file's header) and XLA "
+         f"flags `{m.get('xla_flags', '')}`: XLA's spinning thread pool otherwise inflated and scattered CPU times "
+         "(see `benchmarks/common.py`)",
          "* Times are **process CPU time** (`time.process_time`), median over interleaved rounds after "
          "compilation; wall-clock medians are in the JSON files. On this shared machine wall time mostly "
          "measured waiting for a core (a 3.5 ms solve took 3.3–20 ms of wall time, 3.3–3.7 ms of CPU time). "
@@ -318,10 +363,20 @@ def build(R) -> tuple[str, dict]:
     rows, head = targets(R)
     L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
     if R.get("wp_variator") or R.get("wp_generic"):
-        L += ["## Default solver", "", f"Proposed `default_solver(rtol)`: jaxnh DOP853 for rtol < "
-              f"{proposals.DOP853_BELOW_RTOL:g}, the unrolled Tsit5 otherwise. For each sweep tolerance: the "
+        L += ["## Default solver", "", f"`jaxnh.simulate.default_solver(rtol)`: jaxnh DOP853 for rtol < "
+              f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}, jaxnh's unrolled Tsit5 otherwise. For each sweep tolerance: the "
               "solver it picks, and how much slower it is than the fastest appell solver at the error it reaches "
               "(times interpolated on the work-precision curves).", ""] + default_section(R)
+        rows, best = threshold_scan(R)
+        probs = [R[k]["problem"] for k in ("wp_variator", "wp_generic") if R.get(k)]
+        L += ["**Where to switch.** Each candidate switch point θ (DOP853 for rtol < θ, jaxnh Tsit5 above), its "
+              "slowdown against the fastest appell solver at the error reached: geometric mean and worst over the "
+              "sweep, per problem.", "",
+              table(["θ"] + [f"{p} {w}" for p in probs for w in ("mean", "worst")], rows), "",
+              f"Smallest mean slowdown over both problems: θ = {best:g}; `DOP853_BELOW_RTOL` is "
+              f"{DOP853_BELOW_RTOL:g}" + (" (the same)." if best == DOP853_BELOW_RTOL else
+                                          " (differs: see the closing note of issue 4 for why).") if best else "", ""]
+        head["best_threshold"] = best
     if R.get("wp_variator") or R.get("wp_generic"):
         L += ["## Work-precision", ""]
         if R.get("wp_variator"):
@@ -381,7 +436,7 @@ def build(R) -> tuple[str, dict]:
                     [[r["P"], fmt_t(r["time"]["forward solve"])] + [fmt_x(r["ratio"].get(k)) for k in modes]
                      + [f"{max(r['relative_difference_to_reverse'].values()):.0e}",
                         f"{r['compile']['reverse RecursiveCheckpoint']['cpu']:.1f} / "
-                        f"{r['compile']['ForwardSensitivity (proposed)']['cpu']:.1f} s"]
+                        f"{r['compile']['ForwardSensitivity']['cpu']:.1f} s"]
                      for r in sorted(gr["rows"], key=lambda r: r["P"])]), ""]
     ct = R.get("compile_time")
     if ct:
@@ -406,7 +461,8 @@ def main():
         if R.get(k):
             fig_wp(R[k], C.FIGURES / f"{k.replace('wp_', 'wp_')}.png")
     if R.get("throughput"):
-        fig_throughput(R["throughput"], C.FIGURES / "throughput.png")
+        scipy_t = time_at(_curves(R["wp_variator"]), "scipy/DOP853", 1e-8) if R.get("wp_variator") else None
+        fig_throughput(R["throughput"], C.FIGURES / "throughput.png", scipy_t)
     if R.get("gradients"):
         fig_gradients(R["gradients"], C.FIGURES / "gradients.png")
     text, head = build(R)

@@ -1,14 +1,16 @@
 """Run every benchmark, then write the figures and benchmarks/RESULTS.md.
 
-    python -m benchmarks.run_all            # the full suite (what `make bench` runs)
+    python -m benchmarks.run_all            # the performance suite (what `make bench` runs)
     python -m benchmarks.run_all --quick    # fewer solvers, tolerances and sizes
     python -m benchmarks.run_all --only work_precision gradients
+    python -m benchmarks.run_all --all      # also the project's other benchmark scripts
 
 Each benchmark runs in its own Python process (no JAX caches shared, one
-failure does not stop the rest). The other benchmark scripts of the project
-(stability, calibration, sweeps, bicycle cost) are run too when present, with
-their quick option under `--quick` if they offer one (under `--quick` a script
-without one is skipped, to keep the quick run short).
+failure does not stop the rest). With `--all` the other benchmark scripts of
+the project (stability, calibration, sweeps, bicycle cost: they write their
+own reports, linked from RESULTS.md, and some take tens of minutes) are run
+too when present, with their quick option under `--quick` if they offer one
+(under `--quick` a script without one is skipped).
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="short run of every benchmark")
     ap.add_argument("--only", nargs="*", help=f"run only these of {OURS + OTHERS}")
-    ap.add_argument("--no-others", action="store_true", help="skip the other helpers' scripts")
+    ap.add_argument("--all", action="store_true", help=f"also run {OTHERS} (long)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     log = []
@@ -55,7 +57,7 @@ def main(argv=None):
         if a.only and m not in a.only:
             continue
         log.append(run(m, ["--quick"] if a.quick else []))
-    if not a.no_others:
+    if a.all or (a.only and any(m in OTHERS for m in a.only)):
         for m in OTHERS:
             if (a.only and m not in a.only) or not (C.HERE / f"{m}.py").exists():
                 continue

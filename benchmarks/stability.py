@@ -570,8 +570,10 @@ def precision(results, quick):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="500 periods and fewer solvers (< 2 minutes)")
-    ap.add_argument("--out", default=str(HERE / "STABILITY.md"))
+    ap.add_argument("--out", default=str(HERE / "STABILITY.md"), help="report path; figures go to figures/ beside it")
     args = ap.parse_args(argv)
+    global FIG
+    FIG = pathlib.Path(args.out).resolve().parent / "figures"  # beside the report it belongs to
     FIG.mkdir(exist_ok=True)
     start = time.perf_counter()
     results = {k: {} for k in ("long", "stress", "near_zero", "baumgarte", "precision", "f32_long", "skip")}

@@ -12,6 +12,8 @@ whole batch steps until its slowest member is done. Contenders: jaxnh
 
 from __future__ import annotations
 
+from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+
 import argparse
 import time
 
@@ -23,7 +25,6 @@ import numpy as np
 from jaxnh.equations import formulation
 from jaxnh.models import variator as V
 
-from . import common as C
 from . import problems as PB
 
 RTOL, ATOL = 1e-10, 1e-12
@@ -53,7 +54,7 @@ def _batched(kind: str, solver_name: str, ts):
 
 def run(quick: bool) -> dict:
     ts = jnp.linspace(0.0, 10.0, 101)
-    sizes = [1, 1000] if quick else [1, 10, 100, 1000, 10000]
+    sizes = [1, 1000] if quick else [1, 100, 1000, 10000]
     contenders = [("appell", "DOP853")] if quick else [("appell", "DOP853"), ("appell", "Tsit5"), ("appell", "Tsit5u"),
                                                        ("hand", "DOP853")]
     R, A = C.f64(RTOL), C.f64(ATOL)

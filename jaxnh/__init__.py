@@ -25,14 +25,15 @@ from .equations import METHODS, accelerations, choose_independent  # noqa: E402
 from .holonomic import HolonomicMechanism  # noqa: E402
 from .linearize import Linearization, linearize  # noqa: E402
 from .mechanism import Mechanism  # noqa: E402
+from .sensitivity import ForwardSensitivity  # noqa: E402
 from .simulate import RECORDABLE, STABILIZATIONS, STATUS, Solution, simulate  # noqa: E402
-from . import design, identify, solvers  # noqa: E402
+from . import design, identify, sensitivity, solvers  # noqa: E402
 from .identify import fit  # noqa: E402
 from .sweep import sweep  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Mechanism", "HolonomicMechanism", "Linearization", "linearize", "holonomic", "rigid", "Solution", "accelerations", "choose_independent", "consistent_velocities",
-    "simulate", "fit", "sweep", "design", "identify", "solvers", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
+    "Mechanism", "ForwardSensitivity", "HolonomicMechanism", "Linearization", "linearize", "holonomic", "rigid", "Solution", "accelerations", "choose_independent", "consistent_velocities",
+    "simulate", "fit", "sweep", "design", "identify", "sensitivity", "solvers", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
 ]

@@ -154,3 +154,39 @@ def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[A
     for b in basis:
         x = x - b * jnp.dot(b, x)
     return x
+
+
+def solve_square(A: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
+    """Solve A x = b for a small square, non-symmetric A (e.g. the dependent block of
+    the constraint matrix) by Gaussian elimination with partial pivoting.
+
+    Written out element by element for static sizes up to `UNROLL_MAX`, row
+    exchanges done by selects, so it fuses into the vector field, vmaps and
+    differentiates; `jnp.linalg.solve` there is three library calls (LU and two
+    triangular solves) of about 1 µs each on CPU. LAPACK beyond `UNROLL_MAX`.
+    A singular A gives inf/NaN entries, as LAPACK does.
+    """
+    n = A.shape[0]
+    if n == 1:
+        return b / A[0, 0]
+    if n > UNROLL_MAX:
+        return jnp.linalg.solve(A, b)
+    rows = [A[i] for i in range(n)]
+    rhs = [b[i] for i in range(n)]
+    for k in range(n):
+        # bring the largest |A[i, k]|, i ≥ k, to row k (compare-and-swap down the column)
+        for i in range(k + 1, n):
+            swap = jnp.abs(rows[i][k]) > jnp.abs(rows[k][k])
+            rows[k], rows[i] = jnp.where(swap, rows[i], rows[k]), jnp.where(swap, rows[k], rows[i])
+            rhs[k], rhs[i] = jnp.where(swap, rhs[i], rhs[k]), jnp.where(swap, rhs[k], rhs[i])
+        for i in range(k + 1, n):
+            f = rows[i][k] / rows[k][k]
+            rows[i] = rows[i] - f * rows[k]
+            rhs[i] = rhs[i] - f * rhs[k]
+    x = [None] * n
+    for i in reversed(range(n)):
+        acc = rhs[i]
+        for j in range(i + 1, n):
+            acc = acc - rows[i][j] * x[j]
+        x[i] = acc / rows[i][i]
+    return jnp.stack(x)

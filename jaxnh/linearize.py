@@ -140,6 +140,7 @@ def linearize(
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
     m = mech.check_shapes(q, qd, t, params)  # raises, naming the argument, for wrong shapes
+    mech.check_finite(q, qd, t, params)  # and for concrete NaN/inf
     s = q.shape[0]
     coordinates = tuple(range(s)) if coordinates is None else _indices("coordinates", coordinates, s)
     if speeds is None:

@@ -16,9 +16,11 @@ from .equations.base import as_float
 from .equations.lagrange import Lagrange
 from .consistent import consistent_velocities
 from .mechanism import Mechanism
-from .stabilize import ProjectedSolver, VelocityProjection, default_baumgarte_rate
+from .sensitivity import ForwardSensitivity, auto_adjoint, solve_forward_sensitivity
+from .solvers import DOP853, Tsit5
+from .stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
-__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver"]
+__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL"]
 
 RECORDABLE = ("multipliers", "energy", "residual")
 STABILIZATIONS = (None, "baumgarte", "projection")
@@ -96,9 +98,20 @@ class Solution(eqx.Module):
         return msg
 
 
+DOP853_BELOW_RTOL = 1e-9
+"""`default_solver` switches from Tsit5 to DOP853 below this rtol (benchmarks/RESULTS.md)."""
+
+
 def default_solver(rtol: float):
-    """The explicit solver used when `simulate(solver=None)`: Tsit5 (5th order)."""
-    return diffrax.Tsit5()
+    """The explicit solver used when `simulate(solver=None)`.
+
+    `jaxnh.solvers.Tsit5` (5th order, 6 evaluations per step) for rtol ≥
+    `DOP853_BELOW_RTOL`, `jaxnh.solvers.DOP853` (8th order, 12) below, where
+    its fewer steps outweigh their cost: the fastest choice at matched error
+    on the work-precision benchmarks (variator and a 10-coordinate mechanism,
+    benchmarks/RESULTS.md, "Default solver"). Both have their stages unrolled.
+    """
+    return DOP853() if rtol < DOP853_BELOW_RTOL else Tsit5()
 
 
 def _stages_per_step(solver) -> Optional[int]:
@@ -164,9 +177,14 @@ def simulate(
             values: pass it under `jit`/`vmap`).
         max_steps: step limit; reaching it is a failed solve.
         dt0: initial step, s (default: chosen automatically).
-        adjoint: diffrax adjoint for reverse-mode gradients (default
-            `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` with
-            `jax.jacfwd`).
+        adjoint: how derivatives of the solve are computed. Default (None):
+            `jaxnh.ForwardSensitivity()` — the sensitivities integrated with
+            the state, one augmented solve whatever the mode (`jax.grad`,
+            `jax.jacfwd`, `jax.jvp`) — when (params, q0, qd0) hold at most
+            `jaxnh.sensitivity.FORWARD_MAX_PARAMETERS` float scalars, else
+            `diffrax.RecursiveCheckpointAdjoint()` (reverse mode only: use
+            `ForwardSensitivity()` explicitly with `jax.jacfwd` then). Any
+            diffrax adjoint may be passed.
         throw: raise an error when the solve fails (default). With
             `throw=False` (recommended under `vmap`) check `sol.status`.
         stabilization: constraint drift control for "lagrange": None,
@@ -221,9 +239,11 @@ def simulate(
     y0 = form.state(q0, qd0, t0, params)
 
     solver = default_solver(rtol) if solver is None else solver
+    adjoint = auto_adjoint(params, q0, qd0) if adjoint is None else adjoint
     if stabilization == "projection":
-        solver = ProjectedSolver(solver, VelocityProjection(mech))
-    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+        project = VelocityProjection(mech)
+        # the forward-sensitivity solve passes args = (formulation, params)
+        solver = ProjectedSolver(solver, ParamsOf(project) if isinstance(adjoint, ForwardSensitivity) else project)
     controller = diffrax.PIDController(
         rtol=rtol, atol=atol, dtmax=dtmax,
         step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
@@ -254,6 +274,11 @@ def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0,
         dy = form.vector_field(t, y, p)
         return jax.tree_util.tree_map(lambda d, x: d.astype(x.dtype), dy, y)
 
+    def form_vector_field(t, y, fp):  # the formulation passed as data, so its arrays are differentiated
+        form_, p = fp
+        dy = form_.vector_field(t, y, p)
+        return jax.tree_util.tree_map(lambda d, x: d.astype(x.dtype), dy, y)
+
     # Non-finite input would make the adaptive loop reject steps until
     # max_steps: detect it first, integrate a harmless stand-in, flag it.
     finite = _all_finite((y0, ts, params))
@@ -264,23 +289,31 @@ def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0,
     ts_run = jnp.where(finite, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
     if throw:
         y0_run = eqx.error_if(y0_run, ~finite, STATUS[STATUS.non_finite_input])
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vector_field),
-        solver,
-        t0=ts_run[0],
-        t1=ts_run[-1],
-        dt0=dt0,
-        y0=y0_run,
-        args=params_run,
-        saveat=diffrax.SaveAt(ts=ts_run),
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=throw,
-    )
-    ys = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.nan), sol.ys)
+    if isinstance(adjoint, ForwardSensitivity):
+        sol_ys, sol_result, sol_stats = solve_forward_sensitivity(
+            (form, params_run), y0_run, ts_run, controller,
+            vector_field=form_vector_field, solver=solver, max_steps=max_steps, dt0=dt0, throw=throw,
+        )
+    else:
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            solver,
+            t0=ts_run[0],
+            t1=ts_run[-1],
+            dt0=dt0,
+            y0=y0_run,
+            args=params_run,
+            saveat=diffrax.SaveAt(ts=ts_run),
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            throw=throw,
+        )
+        sol_ys, sol_result, sol_stats = sol.ys, sol.result, sol.stats
+    ys = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.nan), sol_ys)
     if isinstance(solver, ProjectedSolver):  # dense output between steps is unprojected
-        ys = jax.vmap(lambda t, y: solver.project(t, y, params))(ts, ys)
+        args = (form, params) if isinstance(solver.project, ParamsOf) else params
+        ys = jax.vmap(lambda t, y: solver.project(t, y, args))(ts, ys)
     q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, ts)
     out = {}
     if "multipliers" in record:
@@ -289,11 +322,11 @@ def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0,
         out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts)
     if "residual" in record:
         out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, ts)
-    stats = dict(sol.stats)
+    stats = dict(sol_stats)
     stages = _stages_per_step(solver)
     if stages is not None:
         stats["rhs_evaluations"] = stats["num_steps"] * stages
-    result = STATUS.where(finite, STATUS.promote(sol.result), STATUS.non_finite_input)
+    result = STATUS.where(finite, STATUS.promote(sol_result), STATUS.non_finite_input)
     # Never a success with NaN or inf in what is reported.
     bad_output = (result == STATUS.successful) & ~_all_finite((q, qd, out))
     result = STATUS.where(bad_output, STATUS.non_finite_output, result)

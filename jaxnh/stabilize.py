@@ -16,22 +16,32 @@ with the integration error. Two remedies, selected in `simulate` by
   than silently pulled back (a step that jumped over a fast change of the
   constraint, e.g. a steep ratio law, would otherwise look exact).
 
+Both are differentiable: Baumgarte is a term of the vector field; the
+projection is a differentiable map applied after each step, and with forward
+sensitivities (`jaxnh.ForwardSensitivity`, `simulate`'s automatic choice for
+small parameter counts) the sensitivities are projected with its derivative
+(`ProjectedSolver.for_sensitivities`), so the result is the derivative of the
+projected computed solution in every differentiation mode.
+
 The Appell formulation integrates only independent velocities and cannot
-drift; it needs neither.
+drift; it needs neither. Measured drift, accuracy and cost of each option:
+benchmarks/STABILITY.md.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable, Optional
 
 import diffrax
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 
 from .consistent import consistent_velocities
+from .solvers import DOP853, Tsit5
 
-__all__ = ["ProjectedSolver", "VelocityProjection", "default_baumgarte_rate"]
+__all__ = ["ProjectedSolver", "VelocityProjection", "ParamsOf", "default_baumgarte_rate"]
 
 
 def default_baumgarte_rate(ts):
@@ -59,6 +69,37 @@ class VelocityProjection(eqx.Module):
         return (q, consistent_velocities(self.mech, q, qd, t, params))
 
 
+class ParamsOf(eqx.Module):
+    """`project(t, y, args[index])`: a projection written for `params`, used by a solve
+    whose `args` bundle more than the parameters (the forward-sensitivity solve passes
+    `(formulation, params)`)."""
+
+    project: Callable
+    index: int = eqx.field(static=True, default=1)
+
+    def __call__(self, t, y, args):
+        return self.project(t, y, args[self.index])
+
+
+class _SensitivityProjection(eqx.Module):
+    """The projection of a forward-sensitivity state z = ravel(y, S).
+
+    y is projected, and every sensitivity column s_j (with its parameter
+    direction e_j) is mapped by the projection's derivative,
+    `dP/dy s_j + dP/dp e_j`: the derivative of the projected step.
+    """
+
+    project: Callable
+    unravel: Callable
+    p_rest: Any
+
+    def __call__(self, t, z, args):
+        y, S = self.unravel(z)
+        p_diff, E = args
+        y1, lin = jax.linearize(lambda y_, p_: self.project(t, y_, eqx.combine(p_, self.p_rest)), y, p_diff)
+        return jax.flatten_util.ravel_pytree((y1, jax.vmap(lin)(S, E)))[0].astype(z.dtype)
+
+
 class ProjectedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver):
     """A diffrax solver whose every step ends with a projection of the state.
 
@@ -70,6 +111,24 @@ class ProjectedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSol
 
     solver: diffrax.AbstractAdaptiveSolver
     project: Callable
+
+    def for_sensitivities(self, unravel: Callable, p_rest) -> "ProjectedSolver":
+        """The same solver for the augmented state of `jaxnh.sensitivity` (y and its
+        sensitivity columns raveled into one vector by `unravel`'s inverse; args
+        `(differentiated params, their column directions)`, `p_rest` the other params)."""
+        return ProjectedSolver(self.solver, _SensitivityProjection(self.project, unravel, p_rest))
+
+    @property
+    def stages_per_step(self) -> Optional[int]:
+        """Vector-field evaluations per step: the wrapped solver's, plus one for FSAL
+        solvers (their last stage is at the unprojected end point, so the next step
+        re-evaluates its first stage)."""
+        tab = getattr(self.solver, "tableau", None)
+        if tab is not None:
+            return tab.num_stages
+        if isinstance(self.solver, (Tsit5, DOP853)):  # jaxnh's unrolled FSAL solvers
+            return self.solver.stages_per_step + 1
+        return None
 
     @property
     def term_structure(self):

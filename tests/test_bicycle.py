@@ -6,6 +6,10 @@ Tolerances: the published matrices and eigenvalues are printed to 14 decimals (r
 1e-12 (entries of size 1–80) leaves two orders of margin and still fails on any wrong
 term. Speeds found by Brent's method on the characteristic polynomial are good to
 rounding; we ask for 1e-10 m/s (> 10 significant digits; the issue asks for 8).
+
+Nonlinear runs use diffrax's Dopri8 (order 8, like the default DOP853 at these
+tolerances): its stages are a loop, so the large vector field of the bicycle is compiled
+once rather than once per unrolled stage — about 5× less compile time, same accuracy.
 """
 
 import os
@@ -13,6 +17,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+import diffrax
 import pytest
 import scipy.linalg
 
@@ -87,6 +92,7 @@ def test_appell_with_newton_pitch_equals_lagrange(lagrange, appell):
 # --- the nonlinear bicycle --------------------------------------------------------------
 
 TS = jnp.linspace(0.0, 5.0, 101)
+SOLVER = diffrax.Dopri8()
 
 
 def run(v, kick, ts=TS):
@@ -97,7 +103,7 @@ def run(v, kick, ts=TS):
     """
     q, qd = B.upright(v, P)
     return nh.simulate(B.mechanism("lagrange"), P, q, qd.at[B.ROLL].set(kick), ts, method="lagrange",
-                       independent=B.INDEPENDENT, rtol=1e-10, atol=1e-12, record=("residual", "energy"))
+                       independent=B.INDEPENDENT, rtol=1e-10, atol=1e-12, solver=SOLVER, record=("residual", "energy"))
 
 
 @pytest.fixture(scope="module")
@@ -135,5 +141,5 @@ def test_constraints_and_energy_hold(runs):
 @pytest.mark.skipif(not os.environ.get("JAXNH_SLOW"), reason="compiles the Newton-reduced Appell bicycle (minutes); set JAXNH_SLOW=1")
 def test_nonlinear_appell_with_newton_pitch_equals_lagrange(runs):
     q, qd = B.upright(5.0, P)
-    sol = B.system().simulate(P, q, qd.at[B.ROLL].set(0.5), TS, method="appell", rtol=1e-10, atol=1e-12)
+    sol = B.system().simulate(P, q, qd.at[B.ROLL].set(0.5), TS, method="appell", rtol=1e-10, atol=1e-12, solver=SOLVER)
     np.testing.assert_allclose(sol.q, runs["kick5"].q, atol=1e-7)

@@ -19,9 +19,20 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from ..linalg import solve_square
 from ..mechanism import Mechanism, check_independent
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
+
+
+@eqx.filter_jit
+def constraint_matrix(mech: Mechanism, q, qd, t, params):
+    """A = ∂c/∂qd (m, s) at one state, compiled once per mechanism and shapes.
+
+    (Evaluated eagerly, the Jacobian dispatched some forty operations one by
+    one on every `simulate` call, each compiled on first use.)
+    """
+    return jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd)
 
 
 def choose_independent(mech: Mechanism, q, qd, t, params) -> tuple:
@@ -44,7 +55,7 @@ def choose_independent(mech: Mechanism, q, qd, t, params) -> tuple:
     s = q.shape[0]
     if mech.constraints is None:
         return tuple(range(s))
-    A = np.asarray(jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd))
+    A = np.asarray(constraint_matrix(mech, q, qd, t, params))
     m = A.shape[0]
     if m == 0:
         return tuple(range(s))
@@ -65,7 +76,7 @@ def check_split(mech: Mechanism, independent: tuple, q, qd, t, params) -> None:
     leaves = [q, qd, t] + jax.tree_util.tree_leaves(params)
     if mech.constraints is None or any(isinstance(x, jax.core.Tracer) for x in leaves):
         return
-    A = np.asarray(jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(jnp.asarray(qd)))
+    A = np.asarray(constraint_matrix(mech, jnp.asarray(q), jnp.asarray(qd), t, params))
     dep = [i for i in range(A.shape[1]) if i not in independent]
     if not dep:
         return
@@ -83,13 +94,6 @@ def check_split(mech: Mechanism, independent: tuple, q, qd, t, params) -> None:
 def pick(x, indices):
     """x[indices] for a static tuple of indices, without a gather."""
     return jnp.stack([x[i] for i in indices]) if indices else x[:0]
-
-
-def solve_square(A, b):
-    """Solve A x = b for a small square, non-symmetric A."""
-    if A.shape[0] == 1:
-        return b / A[0, 0]
-    return jnp.linalg.solve(A, b)
 
 
 class VelocitySplit(eqx.Module):
@@ -156,8 +160,10 @@ class VelocitySplit(eqx.Module):
         A = jax.jacfwd(lambda u: mech.constraint(q, u, t, params))(zero)
         AD = jnp.stack([A[:, i] for i in dep], axis=1)
         AI = jnp.stack([A[:, i] for i in ind], axis=1)
-        qd = self.assemble(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)))
-        X = solve_square(AD, -AI)
-        B = jnp.stack([self.assemble(jnp.eye(len(ind), dtype=q.dtype)[:, j], X[:, j]) for j in range(len(ind))], axis=1)
+        # one elimination gives the dependent velocities and the columns of B
+        X = solve_square(AD, -jnp.concatenate([(jnp.sum(AI * v, axis=1) + a)[:, None], AI], axis=1))
+        qd = self.assemble(v, X[:, 0])
+        eye = jnp.eye(len(ind), dtype=q.dtype)
+        B = jnp.stack([self.assemble(eye[:, j], X[:, 1 + j]) for j in range(len(ind))], axis=1)
         _, b = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (qd, jnp.ones_like(t)))
         return qd, B, self.assemble(jnp.zeros_like(v), solve_square(AD, -b))

@@ -151,6 +151,7 @@ def estimate_table(result, truth=None) -> str:
                  + ", ".join(f"{c} {1e3 * v:.4f}" for c, v in result.rms_by_channel.items())
                  + "); noise σ " + ", ".join(f"{c} {1e3 * v:.4f}" for c, v in result.noise.items())
                  + f" mrad; s² = {result.chi2_dof:.3f}")
+    lines.append("  " + result.lack_of_fit.message)
     lines.append(f"  {result.iterations} iterations, {'converged' if result.converged else 'NOT CONVERGED'}: "
                  f"{result.message}; {result.elapsed:.1f} s")
     if result.identifiability.messages:
@@ -181,7 +182,7 @@ def demo_fit(out_dir: str = "jaxnh_out") -> dict:
           "two quantised encoders, motor and load torque, U21 changing from "
           f"{truth['U21_values'][0]} to {truth['U21_values'][-1]}")
     print("   unknowns: J1, J2, U21 at 7 knots, phi1(0), phi2(0), phi1'(0); Levenberg–Marquardt, "
-          "Jacobian by forward mode through the solver (first call compiles)")
+          "Jacobian from forward sensitivities integrated with the solve (first call compiles)")
     result = fit_variator(record, progress=True)
     os.makedirs(out_dir, exist_ok=True)
     rep = _print_and_write(result, "embedded", os.path.join(out_dir, "fit.json"), out_dir, record, truth)

@@ -15,7 +15,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["Identifiability", "analyse"]
+__all__ = ["Identifiability", "analyse", "LackOfFit", "lack_of_fit"]
 
 SHOW_COMPONENT = 0.05  # components of a direction smaller than this (relative) are not named
 POOR_RELATIVE_STD = 0.5  # a positive parameter known only to ±50 % (1σ) is called poorly determined
@@ -121,3 +121,85 @@ def analyse(stats: dict, labels, log_mask, rank_tol: float) -> Identifiability:
     positive = sv[sv > 0]
     condition = float(1.0 / np.min(sv)) if identifiable and positive.size == sv.size else float("inf")
     return Identifiability(identifiable, condition, sv, undetermined, poor, messages)
+
+
+# Relative variance of the third-difference noise estimate `noise_level` from n
+# samples of white Gaussian noise is 2 (1 + 2 Σ ρ_k²) / n with ρ = (−15, 6, −1)/20
+# the autocorrelations of Δ³ noise: 4.625 / n.
+NOISE_ESTIMATE_REL_VAR = 2 * (1 + 2 * (0.75**2 + 0.3**2 + 0.05**2))
+LACK_OF_FIT_Z = 2.3263478740408408  # one-sided 99 % normal quantile
+
+
+@dataclasses.dataclass
+class LackOfFit:
+    """How large the misfit is compared with the measurement noise.
+
+    When the model contains the truth, the weighted residual variance s² is
+    about 1 (residuals are noise). A model error — a law the model class
+    cannot represent, an unmodelled effect — adds a systematic part: with
+    noise σ per channel, its rms is estimated as σ·√(s² − 1).
+
+    Attributes:
+        s2: weighted residual variance s² = Σ r² / (N − rank).
+        threshold: s² above which the misfit is significant at the 1 % level
+            (one-sided), `1 + 2.33 · sd(s²)` with `sd(s²)² = 2/dof` plus,
+            when the noise levels were estimated from the same record, the
+            variance of that estimate (4.6 / (n · channels)).
+        significant: s² > threshold: the model does not reproduce the data
+            to within the noise; standard errors (scaled by s²) then include
+            the model error only as if it were noise — they are indicative.
+        model_error_over_noise: √max(s² − 1, 0), the rms of the systematic
+            misfit in units of the noise.
+        model_error_rms: the same per channel, in the channel's units (rad).
+        autocorrelation: lag-1 autocorrelation of each channel's residuals
+            (≈ 0 ± 1/√n for white noise; near 1 when a smooth model error dominates).
+        message: one sentence, for printing.
+    """
+
+    s2: float
+    threshold: float
+    significant: bool
+    model_error_over_noise: float
+    model_error_rms: dict
+    autocorrelation: dict
+    message: str
+
+
+def lack_of_fit(residuals, sigma, s2: float, dof: int, noise_estimated: bool, channels,
+                converged: bool = True) -> LackOfFit:
+    """The `LackOfFit` of a fit from its residuals (n, k) (units of the channels),
+    the noise σ per channel (k,), s², the degrees of freedom, and whether σ was
+    estimated from the same record (then its uncertainty widens the test).
+    For a fit that has not converged the misfit is not attributed to the model."""
+    residuals = np.asarray(residuals, dtype=float)
+    sigma = np.asarray(sigma, dtype=float)
+    n, k = residuals.shape
+    var = 2.0 / max(dof, 1)
+    if noise_estimated:
+        var += NOISE_ESTIMATE_REL_VAR / (max(n - 3, 1) * k)
+    threshold = 1.0 + LACK_OF_FIT_Z * np.sqrt(var)
+    ratio = float(np.sqrt(max(s2 - 1.0, 0.0)))
+    per = {}
+    rho = {}
+    for i, c in enumerate(channels):
+        ms = float(np.mean((residuals[:, i] / sigma[i]) ** 2))
+        per[c] = float(sigma[i] * np.sqrt(max(ms - 1.0, 0.0)))
+        r = residuals[:, i] - residuals[:, i].mean()
+        den = float(r @ r)
+        rho[c] = float(r[1:] @ r[:-1] / den) if den > 0 else 0.0
+    significant = bool(s2 > threshold)
+    ac = ", ".join(f"{c} {v:+.2f}" for c, v in rho.items())
+    if significant and not converged:
+        msg = (f"The residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g}), but the fit has not "
+               "converged: the misfit may be the optimiser's rather than the model's.")
+    elif significant:
+        msg = (f"LACK OF FIT: the residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g} > {threshold:.3g}, "
+               f"the 1 % significance limit): a model error of about {ratio:.3g}× the noise ("
+               + ", ".join(f"{c} {v:.3g}" for c, v in per.items())
+               + f" rms) that the model cannot represent; residual lag-1 autocorrelation {ac}. "
+               "Standard errors treat it as noise and are only indicative.")
+    else:
+        msg = (f"The model fits to within the noise: s² = {s2:.4g} (1 % significance limit {threshold:.3g}); "
+               f"model error below about {np.sqrt(max(threshold - 1, 0)):.2g}× the noise; residual lag-1 "
+               f"autocorrelation {ac}.")
+    return LackOfFit(float(s2), float(threshold), significant, ratio, per, rho, msg)

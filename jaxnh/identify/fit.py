@@ -23,7 +23,7 @@ import numpy as np
 from ..equations.split import choose_independent
 from ..mechanism import Mechanism
 from .data import Record, noise_level
-from .diagnostics import Identifiability, analyse
+from .diagnostics import Identifiability, LackOfFit, analyse, lack_of_fit
 from .parameters import Parametrisation, resolve
 from .problem import (FAILED_RESIDUAL, Observations, Problem, _Progress, solve_least_squares, statistics,
                       value_and_jacobian)
@@ -64,6 +64,8 @@ class FitResult:
             estimated from the data).
         chi2_dof: weighted residual variance s² (≈ 1 when the noise levels
             are right and the model fits).
+        lack_of_fit: the `LackOfFit` report: whether s² is significantly
+            above 1 and how large the model error is relative to the noise.
         identifiability: the `Identifiability` report.
         t, observe, measured, fitted, residuals: sample times (n,), observed
             channel names, and (n, k) arrays of data, fit and data − fit.
@@ -87,6 +89,7 @@ class FitResult:
     rms_by_channel: dict
     noise: dict
     chi2_dof: float
+    lack_of_fit: LackOfFit
     identifiability: Identifiability
     t: np.ndarray
     observe: tuple
@@ -147,6 +150,7 @@ class FitResult:
                      + f"; s² = {self.chi2_dof:.3f}")
         lines.append(f"{self.optimizer}: {self.iterations} iterations, "
                      f"{'converged' if self.converged else 'NOT converged'} — {self.message}")
+        lines.append(self.lack_of_fit.message)
         lines += self.identifiability.messages
         return "\n".join(lines)
 
@@ -280,9 +284,12 @@ def prepare(
         v0 = _independent_from_rates(problem, jnp.asarray(q_init, f), rates, t0, params)
     theta0 = [np.asarray(par.pack()), q_init[list(observed)], v0]
     if shooting > 1:
-        th = jnp.concatenate([jnp.asarray(x, f) for x in theta0])
-        single = dataclasses.replace(problem, starts=(0,), length=n)
-        q_guess = np.asarray(_trajectory(single, th, jnp.asarray(data.t, f)))
+        if len(observed) < s:  # unobserved coordinates at the segment starts: simulate the starting guess
+            th = jnp.concatenate([jnp.asarray(x, f) for x in theta0])
+            single = dataclasses.replace(problem, starts=(0,), length=n)
+            q_guess = np.asarray(_trajectory(single, th, jnp.asarray(data.t, f)))
+        else:
+            q_guess = np.zeros((n, s))
         for st in starts[1:]:
             q_seg = q_guess[st].copy()
             val, rate = _local_rates(data.t, y, st)
@@ -375,8 +382,9 @@ def fit(
             penalties; this tolerates long records and poor starting guesses.
             The answer is then polished by single shooting, from which the
             statistics come.
-        differentiation: "forward" (Jacobian by forward mode through the
-            solver), "reverse" (adjoint; optax only), or "auto":
+        differentiation: "forward" (Jacobian from forward sensitivities
+            integrated with the solve, `jaxnh.ForwardSensitivity`), "reverse"
+            (checkpointed adjoint; optax only), or "auto":
             Levenberg–Marquardt always uses forward mode (it needs the full
             Jacobian of thousands of residuals by tens of unknowns); optax
             uses forward mode up to `FORWARD_MAX_UNKNOWNS` unknowns.
@@ -398,6 +406,8 @@ def fit(
     if lm and differentiation == "reverse":
         raise ValueError("differentiation='reverse' is not available with Levenberg–Marquardt, which needs the "
                          "Jacobian of every residual (forward mode); use an optax optimizer for reverse mode")
+    if not isinstance(shooting, (int, np.integer)) or isinstance(shooting, bool) or shooting < 1:
+        raise ValueError(f"shooting must be a positive integer (number of segments); got {shooting!r}")
     kw = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0, method=method,
               solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
     iterations = 0
@@ -438,7 +448,7 @@ def fit(
         why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
         opt_name = "optax"
     return _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, opt_name,
-                   differentiation, shooting, time.perf_counter() - started)
+                   differentiation, shooting, time.perf_counter() - started, noise_estimated=noise is None)
 
 
 def _optx_message(code: int) -> str:
@@ -514,7 +524,7 @@ def _optax_loop(problem, optimizer, theta, obs, tol, max_iterations, progress, p
 
 
 def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, optimizer, differentiation,
-            shooting, elapsed) -> FitResult:
+            shooting, elapsed, noise_estimated: bool = False) -> FitResult:
     stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
     par = problem.par
     labels = problem.labels(names)
@@ -550,14 +560,18 @@ def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol
         estimates[name] = {"value": float(v[0]) if scalar else v, "std": float(s[0]) if scalar else s}
     for j in range(par.size, problem.size):
         estimates[labels[j]] = {"value": float(values[j]), "std": float(std[j])}
+    lof = lack_of_fit(res, sigma, float(stats["s2"]), int(stats["dof"]), noise_estimated, observe, converged)
     if not ident.identifiable:
         warnings.warn("jaxnh.fit: " + " ".join(ident.messages), stacklevel=3)
+    if lof.significant and converged:
+        warnings.warn("jaxnh.fit: " + lof.message, stacklevel=3)
     return FitResult(
         params=params, q0=q0, qd0=qd0, estimates=estimates, labels=labels, values=values, std=std,
         covariance=covariance, converged=converged, iterations=iterations, message=message,
         rms_residual=float(np.sqrt(np.mean(res**2))),
         rms_by_channel={c: float(np.sqrt(np.mean(res[:, i] ** 2))) for i, c in enumerate(observe)},
-        noise={c: float(s) for c, s in zip(observe, sigma)}, chi2_dof=float(stats["s2"]), identifiability=ident,
+        noise={c: float(s) for c, s in zip(observe, sigma)}, chi2_dof=float(stats["s2"]), lack_of_fit=lof,
+        identifiability=ident,
         t=np.asarray(obs.t), observe=observe, measured=np.asarray(obs.y), fitted=fitted, residuals=res,
         gn_step=gn, optimizer=optimizer, differentiation=differentiation, shooting=shooting, elapsed=elapsed,
         problem=problem, theta=theta, cov_theta=cov_theta, null_directions=null,

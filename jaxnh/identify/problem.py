@@ -11,12 +11,15 @@ Unknowns θ = [free parameters | initial state | segment states]:
 
 Residuals are `(q_sim − y) / sigma` for every observed channel and sample,
 plus, with multiple shooting, the continuity defects between segments.
-Their Jacobian comes from forward-mode differentiation through diffrax
-(`diffrax.ForwardMode`), wrapped in a `jax.custom_jvp` so that any consumer
-(optimistix's Levenberg–Marquardt, `jax.grad` for optax) gets it from one
-`jax.jacfwd` pass: with tens of unknowns and thousands of residuals this
-costs about twice a plain solve, far less than reverse mode (one adjoint
-pass per residual) or optimistix's default re-linearisation.
+Their Jacobian comes from forward sensitivities integrated with the state
+(`jaxnh.sensitivity.ForwardSensitivity`: one solve of the state and one
+sensitivity column per unknown), wrapped in a `jax.custom_jvp` so that any
+consumer (optimistix's Levenberg–Marquardt, `jax.grad` for optax) gets it
+from one `jax.jacfwd` pass: with tens of unknowns and thousands of residuals
+this costs about 1.3–2 plain solves (benchmarks/FIT_COST.md), far less than
+reverse mode (one adjoint pass per residual), `jax.jacfwd` through
+`diffrax.ForwardMode` (≈ 6× slower here) or optimistix's default
+re-linearisation.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import optimistix as optx
 
 from ..equations.split import VelocitySplit
 from ..mechanism import Mechanism
+from ..sensitivity import ForwardSensitivity
 from ..simulate import simulate
 from .parameters import Parametrisation
 
@@ -69,9 +73,10 @@ class Problem(eqx.Module):
             `(0,)` for single shooting).
         length: samples per segment (static).
         method, solver, rtol, atol, max_steps: passed to `simulate`.
-        differentiation: "forward" (Jacobian by `jax.jacfwd` through
-            `diffrax.ForwardMode`) or "reverse" (`RecursiveCheckpointAdjoint`;
-            for gradients of a scalar loss with many unknowns).
+        differentiation: "forward" (Jacobian by `jax.jacfwd` with
+            `jaxnh.sensitivity.ForwardSensitivity`) or "reverse"
+            (`RecursiveCheckpointAdjoint`; for gradients of a scalar loss
+            with many unknowns).
     """
 
     mech: Mechanism
@@ -93,18 +98,22 @@ class Problem(eqx.Module):
 
     @property
     def n_params(self) -> int:
+        """Number of free-parameter entries at the head of θ."""
         return self.par.size
 
     @property
     def n_coords(self) -> int:
+        """Number s of coordinates of the mechanism."""
         return int(self.q0_fixed.shape[0])
 
     @property
     def n_initial(self) -> int:
+        """Entries of θ for the initial state: observed positions, independent velocities."""
         return len(self.observed) + len(self.independent)
 
     @property
     def n_segment_state(self) -> int:
+        """Entries of θ per further shooting segment: all positions, independent velocities."""
         return self.n_coords + len(self.independent)
 
     @property
@@ -122,6 +131,7 @@ class Problem(eqx.Module):
         return tuple(lab)
 
     def split(self) -> VelocitySplit:
+        """The map from independent to all velocities (paper eq. 17)."""
         s = self.n_coords
         m = s - len(self.independent)
         return VelocitySplit.make(self.mech, s, m, self.independent)
@@ -160,7 +170,7 @@ class Problem(eqx.Module):
 
     def raw_residuals(self, theta, data: Observations):
         """Weighted residuals (vector) without the custom Jacobian rule."""
-        adjoint = diffrax.ForwardMode() if self.differentiation == "forward" else diffrax.RecursiveCheckpointAdjoint()
+        adjoint = ForwardSensitivity() if self.differentiation == "forward" else diffrax.RecursiveCheckpointAdjoint()
         params = self.par.unpack(theta[:self.n_params])
         obs = jnp.asarray(self.observed)
         if len(self.starts) == 1:

@@ -139,7 +139,8 @@ def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
     Keys: "J1", "J2" ({"value", "std"}, kg·m²), "U21" ({"t", "value", "std"} on a
     uniform grid of `n_grid` times over the record), "rms_residual" (rad),
     "iterations", "converged", and further "relative_std", "U21_knots",
-    "initial_state", "rms_by_channel", "noise", "chi2_dof", "identifiable",
+    "initial_state", "rms_by_channel", "noise", "chi2_dof", "lack_of_fit" (is the
+    misfit significantly above the noise, and the model error relative to it), "identifiable",
     "messages", "message", "observe", "data", "elapsed_s".
     """
     ts = np.linspace(result.t[0], result.t[-1], n_grid)
@@ -166,6 +167,11 @@ def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
         "rms_by_channel": result.rms_by_channel,
         "noise": result.noise,
         "chi2_dof": result.chi2_dof,
+        "lack_of_fit": {"significant": result.lack_of_fit.significant, "s2_threshold": result.lack_of_fit.threshold,
+                        "model_error_over_noise": result.lack_of_fit.model_error_over_noise,
+                        "model_error_rms": result.lack_of_fit.model_error_rms,
+                        "residual_autocorrelation": result.lack_of_fit.autocorrelation,
+                        "message": result.lack_of_fit.message},
         "identifiable": result.identifiable,
         "messages": result.identifiability.messages,
         "message": result.message,

@@ -20,8 +20,9 @@ mode. Only the columns of inputs that are actually differentiated are built
 differentiated scalars — far below reverse mode through diffrax's checkpointed
 loop for small mechanisms with tens of parameters (see benchmarks/RESULTS.md).
 
-Proposed as `jaxnh/sensitivity.py` (issue 4); the benchmarks carry this copy
-until the lead applies /tmp/issue4_core.patch.
+`simulate(adjoint=None)` chooses it automatically for up to
+`FORWARD_MAX_PARAMETERS` float scalars in (params, q0, qd0) (`auto_adjoint`);
+measurements in benchmarks/RESULTS.md ("Gradients").
 """
 
 from __future__ import annotations
@@ -145,6 +146,8 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
         return optx.rms_norm(scaled_error[:ny])
 
     y_controller = eqx.tree_at(lambda c: c.norm, controller, y_norm)
+    if hasattr(solver, "for_sensitivities"):  # a projection after each step: project the columns too
+        solver = solver.for_sensitivities(unravel, p_rest)
     zs, result, stats = _solve(augmented, solver, z0, (p_diff, E), ts, y_controller, max_steps, dt0, throw)
     ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
@@ -156,22 +159,3 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     no_tangent = lambda tree: jtu.tree_map(lambda _: None, tree)  # noqa: E731
     return (ys, result, stats), (t_ys, no_tangent(result), no_tangent(stats))
 
-
-def diffeqsolve(terms, solver, t0, t1, dt0, y0, args=None, *, saveat, stepsize_controller, max_steps, adjoint, throw=True, **kw):
-    """`diffrax.diffeqsolve` that routes `adjoint=ForwardSensitivity()` here (for
-    `SaveAt(ts=...)`, a `PIDController` and an `ODETerm`, as `simulate` uses)."""
-    if not isinstance(adjoint, ForwardSensitivity):
-        return diffrax.diffeqsolve(terms, solver, t0, t1, dt0, y0, args, saveat=saveat,
-                                   stepsize_controller=stepsize_controller, max_steps=max_steps,
-                                   adjoint=adjoint, throw=throw, **kw)
-    ys, result, stats = solve_forward_sensitivity(
-        args, y0, saveat.subs.ts, stepsize_controller,
-        vector_field=terms.vector_field, solver=solver, max_steps=max_steps, dt0=dt0, throw=throw,
-    )
-    return _Out(ys=ys, result=result, stats=stats)
-
-
-class _Out(eqx.Module):
-    ys: object
-    result: object
-    stats: dict

@@ -1,0 +1,142 @@
+"""Defaults chosen by measurement (issue 4): the solver per tolerance, the unrolled
+Tsit5, the automatic derivative mode (forward sensitivities), the small pivoted
+solve and the remembered shape checks."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnh as nh
+from jaxnh.linalg import solve_square
+from jaxnh.models import variator as V
+from jaxnh.sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
+from jaxnh.simulate import DOP853_BELOW_RTOL, default_solver
+from jaxnh.solvers import DOP853, Tsit5
+
+MECH = V.mechanism()
+P = V.default_params()
+TS = jnp.linspace(0.0, 2.0, 21)
+Q0 = jnp.zeros(2)
+
+
+def qd0(p, w=1.0):
+    return jnp.stack([w, w * p.U21(0.0)])
+
+
+def test_default_solver_by_tolerance():
+    assert isinstance(default_solver(10 * DOP853_BELOW_RTOL), Tsit5)
+    assert isinstance(default_solver(DOP853_BELOW_RTOL / 10), DOP853)
+
+
+@pytest.mark.parametrize("rtol", [1e-6, 1e-11])
+def test_default_solve_matches_closed_form(rtol):
+    sol = nh.simulate(MECH, P, Q0, qd0(P), TS, rtol=rtol, atol=rtol / 100)
+    q_ref, qd_ref = V.closed_form(P, TS, w0=1.0)
+    assert np.max(np.abs(sol.q - q_ref)) < 2e3 * rtol
+    assert int(sol.stats["rhs_evaluations"]) > 0
+
+
+def test_unrolled_tsit5_takes_diffrax_tsit5_steps():
+    def vf(t, y, a):
+        w = 1.0 + 0.5 * t
+        return {"x": -w * y["v"], "v": w * y["x"] + 0.1 * jnp.sin(y["x"])}
+
+    y0 = {"x": jnp.array([1.0, 0.2, 0.3, -0.4, 0.5]), "v": jnp.zeros(5)}
+    ts = jnp.linspace(0.0, 6.0, 25)
+    out = [diffrax.diffeqsolve(diffrax.ODETerm(vf), s, 0.0, 6.0, None, y0, saveat=diffrax.SaveAt(ts=ts),
+                               stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-9))
+           for s in (diffrax.Tsit5(), Tsit5())]
+    assert int(out[0].stats["num_steps"]) == int(out[1].stats["num_steps"])
+    for k in ("x", "v"):
+        np.testing.assert_allclose(out[1].ys[k], out[0].ys[k], rtol=0, atol=1e-12)
+
+
+def test_auto_adjoint_by_parameter_count():
+    assert isinstance(auto_adjoint(P, Q0, Q0), ForwardSensitivity)
+    many = {"w": jnp.zeros(FORWARD_MAX_PARAMETERS + 1)}
+    assert isinstance(auto_adjoint(many, Q0, Q0), diffrax.RecursiveCheckpointAdjoint)
+
+
+def _loss(theta, w, static, adjoint):
+    p = eqx.combine(theta, static)
+    sol = nh.simulate(MECH, p, Q0, qd0(p, w), TS, adjoint=adjoint, independent=(0,))
+    return jnp.sum(sol.q**2) + jnp.sum(sol.qd**2)
+
+
+def test_forward_sensitivities_equal_reverse_mode_in_every_mode():
+    """grad (auto mode, under vmap) and jacfwd by forward sensitivities equal reverse mode.
+
+    Both differentiate the same discrete solution (same steps), so they agree to
+    rounding, far below the solver tolerance: rtol 1e-8 is a loose bound on that.
+    Three compilations in all (each gradient program costs seconds to compile).
+    """
+    theta, static = eqx.partition(P, nh.profiles.trainable(P))
+    ws = jnp.array([1.0, 1.1])
+    grad_rev = eqx.filter_jit(jax.grad(_loss, argnums=(0, 1)))
+    g_rev = [grad_rev(theta, w, static, diffrax.RecursiveCheckpointAdjoint()) for w in ws]
+    # default adjoint (None → forward sensitivities, P ≤ FORWARD_MAX_PARAMETERS), batched over w
+    g_auto = jax.vmap(jax.grad(_loss, argnums=(0, 1)), in_axes=(None, 0, None, None))(theta, ws, static, None)
+    g_fwd = jax.jacfwd(_loss, argnums=(0, 1))(theta, ws[0], static, ForwardSensitivity())
+    cases = [(jax.tree_util.tree_map(lambda x, i=i: x[i], g_auto), g_rev[i]) for i in range(2)] + [(g_fwd, g_rev[0])]
+    for g, ref in cases:
+        for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(ref)):
+            np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8 * float(jnp.max(jnp.abs(b))))
+    assert float(jnp.abs(g_rev[0][1])) > 0  # the initial speed is differentiated too
+
+
+def test_forward_sensitivities_reach_arrays_inside_the_formulation():
+    """The Baumgarte rate lives in the formulation, not in params: still differentiated.
+
+    The motion stays on the constraints, so this derivative is tiny (≈ 4e-9): a
+    finite difference cannot resolve it; reverse mode through the same steps can.
+    """
+    def loss(rate, adjoint):
+        sol = nh.simulate(MECH, P, Q0, qd0(P), TS, method="lagrange", stabilization="baumgarte",
+                          baumgarte_rate=rate, adjoint=adjoint, rtol=1e-6, atol=1e-8)
+        return jnp.sum(sol.qd**2)
+
+    a = jax.grad(loss)(3.0, ForwardSensitivity())
+    b = jax.grad(loss)(3.0, diffrax.RecursiveCheckpointAdjoint())
+    assert float(jnp.abs(b)) > 0
+    np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12)
+
+
+def test_forward_sensitivities_refuse_report_time_derivatives():
+    def loss(T):
+        return jnp.sum(nh.simulate(MECH, P, Q0, qd0(P), jnp.linspace(0.0, T, 5), independent=(0,),
+                                   adjoint=ForwardSensitivity()).q)
+
+    with pytest.raises(NotImplementedError, match="report times"):
+        jax.grad(loss)(1.0)
+
+
+def test_solve_square_pivots_and_differentiates():
+    A = jnp.array([[0.0, 1.0, 2.0], [1.0, 1e-12, 3.0], [4.0, 5.0, 0.0]])  # needs row exchanges
+    b = jnp.array([[1.0, 0.5], [2.0, -1.0], [3.0, 0.0]])
+    np.testing.assert_allclose(solve_square(A, b), np.linalg.solve(np.asarray(A), np.asarray(b)), rtol=1e-12)
+    As = A + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (8, 3, 3))
+    xs = jax.vmap(solve_square, in_axes=(0, None))(As, b[:, 0])
+    np.testing.assert_allclose(xs, np.linalg.solve(np.asarray(As), np.asarray(b[:, 0])[None, :, None])[..., 0],
+                               rtol=1e-10)
+    g = jax.grad(lambda a: jnp.sum(solve_square(a, b[:, 0]) ** 2))(A)
+    g_ref = jax.grad(lambda a: jnp.sum(jnp.linalg.solve(a, b[:, 0]) ** 2))(A)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-9)
+
+
+def test_shape_checks_are_remembered():
+    calls = []
+
+    def T(q, qd, t, p):
+        calls.append(1)
+        return V.kinetic(q, qd, t, p)
+
+    mech = nh.Mechanism(T, constraints=V.constraint, forces=V.torques, independent=(0,))
+    mech.check_shapes(Q0, qd0(P), 0.0, P)
+    n = len(calls)
+    mech.check_shapes(Q0, qd0(P), 0.0, P)
+    assert len(calls) == n
+    with pytest.raises(ValueError, match="qd must have the shape of q"):
+        mech.check_shapes(Q0, jnp.zeros(3), 0.0, P)
