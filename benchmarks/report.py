@@ -18,7 +18,30 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxnh.simulate import DOP853_BELOW_RTOL, default_solver  # noqa: E402
+from jaxnh.simulate import DOP853_BELOW_RTOL, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
+
+_OPS: dict = {}
+
+
+def appell_operations(problem: str) -> int:
+    """Size (JAX operations) of the Appell vector field of a work-precision problem: what
+    `simulate(solver=None)` passes to `default_solver`."""
+    if problem not in _OPS:
+        from jaxnh.equations import formulation
+
+        from . import problems as PB
+
+        v = PB.variator() if problem == "variator" else PB.generic()
+        ind = (0,) if problem == "variator" else v.independent
+        form = formulation(v.mech, "appell", v.q0, v.qd0, 0.0, v.params, ind)
+        _OPS[problem] = vector_field_operations(form, 0.0, form.state(v.q0, v.qd0, 0.0, v.params), v.params)
+    return _OPS[problem]
+
+
+def default_key(problem: str):
+    """rtol -> the SOLVERS label `simulate(solver=None, method="appell")` uses on `problem`."""
+    ops = appell_operations(problem)
+    return lambda r: C.solver_key(default_solver(r, ops, "appell"))
 
 SOLVER_COLORS = {"Tsit5": "tab:blue", "Tsit5u": "tab:cyan", "Dopri5": "tab:green", "Dopri8": "tab:olive",
                  "DOP853": "tab:red", "Kvaerno5": "tab:purple", "RK45": "tab:gray", "LSODA": "tab:brown",
@@ -258,7 +281,7 @@ def targets(R) -> tuple[list, dict]:
         if not wp:
             continue
         for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
-                            ("default_solver(rtol)", lambda r: C.solver_key(default_solver(r)))):
+                            ("default_solver(rtol)", default_key(wp["problem"]))):
             slow = default_slowdown(wp, pick)
             if slow:
                 worst = max(slow.values())
@@ -291,17 +314,18 @@ def default_section(R) -> list:
         if not wp:
             continue
         today = default_slowdown(wp, lambda r: "Tsit5")
-        prop = default_slowdown(wp, lambda r: C.solver_key(default_solver(r)))
+        pick = default_key(wp["problem"])
+        prop = default_slowdown(wp, pick)
         cv = _curves(wp)
         rows = []
         for r in wp["tols"]:
             pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items() if n.startswith("appell/")}
-            fastest = min(((n, time_at(cv, n, pts["appell/" + C.solver_key(default_solver(r))]["error"]))
+            fastest = min(((n, time_at(cv, n, pts["appell/" + pick(r)]["error"]))
                            for n in pts if pts[n] is not None), key=lambda x: x[1] if x[1] is not None else 1e9,
                           default=(None, None))
-            rows.append([f"{r:g}", C.solver_key(default_solver(r)), fmt_x(prop.get(r)), fmt_x(today.get(r)),
+            rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
                          (fastest[0] or "—").split("/")[-1]])
-        L += [f"**{wp['problem']}**", "", table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
+        L += [f"**{wp['problem']}** (Appell vector field: {appell_operations(wp['problem'])} operations)", "", table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
                                                   "diffrax Tsit5 (previous default) / fastest", "fastest appell solver"],
                                                  rows), ""]
     return L
@@ -313,7 +337,7 @@ THRESHOLD_CANDIDATES = [10.0**-k for k in range(4, 12)]
 
 
 def threshold_scan(R) -> tuple[list, float | None]:
-    """For each candidate switch point θ (DOP853 for rtol < θ, jaxnh Tsit5 above): the slowdown of that
+    """For each candidate switch point θ (Dopri8 for rtol < θ, the default 5th-order solver above): the slowdown of that
     rule against the fastest appell solver at the error reached, geometric mean and worst over the sweep
     of each work-precision problem. Returns (table rows, θ with the smallest mean log slowdown over both)."""
     wps = [R[k] for k in ("wp_variator", "wp_generic") if R.get(k)]
@@ -321,7 +345,8 @@ def threshold_scan(R) -> tuple[list, float | None]:
     for th in THRESHOLD_CANDIDATES:
         row, logs = [f"{th:g}" + (" (current)" if th == DOP853_BELOW_RTOL else "")], []
         for wp in wps:
-            sl = default_slowdown(wp, lambda r, th=th: "DOP853" if r < th else "Tsit5u")
+            low = default_key(wp["problem"])(1.0)
+            sl = default_slowdown(wp, lambda r, th=th, low=low: "Dopri8" if r < th else low)
             v = [x for x in sl.values() if x is not None and math.isfinite(x)]
             if not v:
                 row += ["—", "—"]
@@ -363,13 +388,15 @@ def build(R) -> tuple[str, dict]:
     rows, head = targets(R)
     L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
     if R.get("wp_variator") or R.get("wp_generic"):
-        L += ["## Default solver", "", f"`jaxnh.simulate.default_solver(rtol)`: jaxnh DOP853 for rtol < "
-              f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}, jaxnh's unrolled Tsit5 otherwise. For each sweep tolerance: the "
+        L += ["## Default solver", "", f"`jaxnh.simulate.default_solver(rtol, operations, method)`: diffrax Dopri8 for "
+              f"rtol < `DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; otherwise jaxnh's unrolled Tsit5 (Tsit5u) when the "
+              f"vector field has at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations and the "
+              "method is not lagrange, diffrax's Tsit5 else. For each sweep tolerance: the "
               "solver it picks, and how much slower it is than the fastest appell solver at the error it reaches "
               "(times interpolated on the work-precision curves).", ""] + default_section(R)
         rows, best = threshold_scan(R)
         probs = [R[k]["problem"] for k in ("wp_variator", "wp_generic") if R.get(k)]
-        L += ["**Where to switch.** Each candidate switch point θ (DOP853 for rtol < θ, jaxnh Tsit5 above), its "
+        L += ["**Where to switch.** Each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order default above), its "
               "slowdown against the fastest appell solver at the error reached: geometric mean and worst over the "
               "sweep, per problem.", "",
               table(["θ"] + [f"{p} {w}" for p in probs for w in ("mean", "worst")], rows), "",

@@ -17,10 +17,11 @@ from .equations.lagrange import Lagrange
 from .consistent import consistent_velocities
 from .mechanism import Mechanism
 from .sensitivity import ForwardSensitivity, auto_adjoint, solve_forward_sensitivity
-from .solvers import DOP853, Tsit5
+from .solvers import Tsit5
 from .stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
-__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL"]
+__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
+           "UNROLL_MAX_OPERATIONS", "vector_field_operations"]
 
 RECORDABLE = ("multipliers", "energy", "residual")
 STABILIZATIONS = (None, "baumgarte", "projection")
@@ -99,19 +100,74 @@ class Solution(eqx.Module):
 
 
 DOP853_BELOW_RTOL = 1e-9
-"""`default_solver` switches from Tsit5 to DOP853 below this rtol (benchmarks/RESULTS.md)."""
+"""`default_solver` switches from a 5th- to an 8th-order method below this rtol
+(the name is historical: the 8th-order default is now `diffrax.Dopri8`)."""
+
+UNROLL_MAX_OPERATIONS = 300
+"""Vector fields of at most this many JAX operations may get jaxnh's unrolled Tsit5.
+
+An unrolled step holds one copy of the vector field per stage, which XLA
+compiles and schedules separately: for a small mechanism (the variator's
+Appell form, ≈ 250 operations) that removes diffrax's per-stage loop
+overhead; for a large one (a 10-coordinate mechanism, Appell form: ≈ 1100;
+the Whipple bicycle: ≈ 7000) it multiplied the compile time (bicycle: 45 s
+against 7 s) and ran up to 2× slower than diffrax's Tsit5, which loops over
+its stages (benchmarks/RESULTS.md).
+"""
 
 
-def default_solver(rtol: float):
+def default_solver(rtol: float, operations: Optional[int] = None, method: str = "appell"):
     """The explicit solver used when `simulate(solver=None)`.
 
-    `jaxnh.solvers.Tsit5` (5th order, 6 evaluations per step) for rtol ≥
-    `DOP853_BELOW_RTOL`, `jaxnh.solvers.DOP853` (8th order, 12) below, where
-    its fewer steps outweigh their cost: the fastest choice at matched error
-    on the work-precision benchmarks (variator and a 10-coordinate mechanism,
-    benchmarks/RESULTS.md, "Default solver"). Both have their stages unrolled.
+    Arguments:
+        rtol: the relative tolerance of the solve.
+        operations: size of the vector field in JAX operations
+            (`vector_field_operations`); None means small.
+        method: the formulation ("lagrange", "appell", "substituted").
+
+    Returns the fastest choice at matched error on the work-precision
+    benchmarks (variator and a 10-coordinate mechanism, benchmarks/RESULTS.md,
+    "Default solver"):
+    * rtol < `DOP853_BELOW_RTOL`: `diffrax.Dopri8` (8th order);
+    * otherwise a 5th-order Tsitouras method: jaxnh's unrolled
+      `jaxnh.solvers.Tsit5` for small vector fields (at most
+      `UNROLL_MAX_OPERATIONS`) in the "appell" and "substituted" forms,
+      `diffrax.Tsit5` for large ones and for "lagrange" (whose unrolled step
+      measured 2.4× slower than diffrax's on the variator).
     """
-    return DOP853() if rtol < DOP853_BELOW_RTOL else Tsit5()
+    if rtol < DOP853_BELOW_RTOL:
+        return diffrax.Dopri8()
+    small = operations is None or operations <= UNROLL_MAX_OPERATIONS
+    return Tsit5() if small and method != "lagrange" else diffrax.Tsit5()
+
+
+def _count_operations(jaxpr) -> int:
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for v in eqn.params.values():
+            for sub in (v if isinstance(v, (tuple, list)) else (v,)):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    n += _count_operations(inner)
+    return n
+
+
+def vector_field_operations(form, t, y, params) -> int:
+    """Number of JAX operations (jaxpr equations, nested ones included) in one
+    evaluation of the formulation's vector field: a size that does not depend
+    on values, so it can be taken under `jit` and `vmap`."""
+    def spec(x):
+        return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) if eqx.is_array(x) else x
+
+    arrays, static = eqx.partition((form, t, y, params), eqx.is_array)
+    arrays = jax.tree_util.tree_map(spec, arrays)
+
+    def field(a):
+        f, t_, y_, p = eqx.combine(a, static)
+        return f.vector_field(t_, y_, p)
+
+    return _count_operations(jax.make_jaxpr(field)(arrays).jaxpr)
 
 
 def _stages_per_step(solver) -> Optional[int]:
@@ -167,7 +223,9 @@ def simulate(
         method: "appell" (default; state (q, independent velocities), the
             constraints hold exactly), "lagrange" (multipliers, state (q, qd))
             or "substituted" (the paper's wrong method, for comparison).
-        solver: a diffrax solver; default `default_solver(rtol)`.
+        solver: a diffrax solver; default `default_solver(rtol, size of the
+            vector field, method)`: Dopri8 for rtol < 1e-9, else a Tsit5
+            (jaxnh's unrolled one for small Appell vector fields).
         rtol, atol: relative and absolute tolerances of the PID step control.
         record: any of "multipliers", "energy", "residual" — computed at the
             report times only when asked.
@@ -238,7 +296,8 @@ def simulate(
         form = Lagrange(mech, baumgarte=rate)
     y0 = form.state(q0, qd0, t0, params)
 
-    solver = default_solver(rtol) if solver is None else solver
+    if solver is None:
+        solver = default_solver(rtol, vector_field_operations(form, t0, y0, params), method)
     adjoint = auto_adjoint(params, q0, qd0) if adjoint is None else adjoint
     if stabilization == "projection":
         project = VelocityProjection(mech)

@@ -24,6 +24,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import diffrax
+import equinox as eqx
 import equinox.internal as eqxi
 import jax.lax as lax
 import jax.numpy as jnp
@@ -282,6 +283,22 @@ def _lincomb(coeffs: Mapping[int, float], fs: Mapping[int, Any]) -> Any:
     return jtu.tree_map(leaf, *[f for _, f in items])
 
 
+def _shared_vf(terms):
+    """`terms.vf` as one compiled sub-computation, shared by every stage of a step.
+
+    Unrolled stages would otherwise trace, lower and optimise the vector field
+    once per stage: for a large mechanism (the bicycle) that multiplied the
+    compile time several-fold. Called through one `filter_jit` wrapper, the
+    stages reuse a single trace and lowering.
+    """
+
+    @eqx.filter_jit
+    def vf(t, y, args):
+        return terms.vf(t, y, args)
+
+    return vf
+
+
 def _add(y, dy):
     """y + dy leafwise, keeping the dtype of y (the state's dtype is authoritative)."""
     return jtu.tree_map(lambda a, b: (a + b).astype(jnp.result_type(a)), y, dy)
@@ -384,6 +401,7 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
         dt = t1 - t0
 
@@ -402,7 +420,7 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
         else:
 
             def fresh():
-                f_new = terms.vf(t0, y0, args)
+                f_new = vf(t0, y0, args)
                 return jtu.tree_map(
                     lambda a, b: jnp.where(made_jump, a, b), f_new, f_prev
                 )
@@ -412,10 +430,10 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
         fs = {1: f1}
         for i in range(2, 13):
             yi = _add(y0, prod(_lincomb(_A[i], fs)))
-            fs[i] = terms.vf(node(i), yi, args)
+            fs[i] = vf(node(i), yi, args)
 
         y1 = _add(y0, prod(_lincomb(_B, fs)))
-        f13 = terms.vf(t1, y1, args)  # FSAL: next step's first stage
+        f13 = vf(t1, y1, args)  # FSAL: next step's first stage
 
         # Error estimate (Hairer's DOP853, combined componentwise).
         e5 = prod(_lincomb(_ER, fs))
@@ -432,7 +450,7 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
         fs[13] = f13
         for i in range(14, 17):
             yi = _add(y0, prod(_lincomb(_A[i], fs)))
-            fs[i] = terms.vf(node(i), yi, args)
+            fs[i] = vf(node(i), yi, args)
         ydiff = _sub(y1, y0)
         bspl = _sub(prod(f1), ydiff)
         r4 = _sub(_sub(ydiff, prod(f13)), bspl)
@@ -551,6 +569,7 @@ class Tsit5(diffrax.AbstractAdaptiveSolver):
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
         dt = t1 - t0
 
@@ -563,7 +582,7 @@ class Tsit5(diffrax.AbstractAdaptiveSolver):
         else:
 
             def fresh():
-                f_new = terms.vf(t0, y0, args)
+                f_new = vf(t0, y0, args)
                 return jtu.tree_map(lambda a, b: jnp.where(made_jump, a, b), f_new, f_prev)
 
             f1 = lax.cond(eqxi.unvmap_any(made_jump), fresh, lambda: f_prev)
@@ -571,9 +590,9 @@ class Tsit5(diffrax.AbstractAdaptiveSolver):
         fs = {1: f1}
         for i in range(2, 7):
             yi = _add(y0, prod(_lincomb(_T5_A[i], fs)))
-            fs[i] = terms.vf(t1 if _T5_C[i - 1] == 1.0 else t0 + _T5_C[i - 1] * dt, yi, args)
+            fs[i] = vf(t1 if _T5_C[i - 1] == 1.0 else t0 + _T5_C[i - 1] * dt, yi, args)
         y1 = _add(y0, prod(_lincomb(_T5_B, fs)))
-        fs[7] = terms.vf(t1, y1, args)  # FSAL
+        fs[7] = vf(t1, y1, args)  # FSAL
         y_error = prod(_lincomb(_T5_E, fs))
         ks = jtu.tree_map(lambda y, *f: jnp.stack([x.astype(jnp.result_type(y)) for x in f]), y0,
                           *[prod(fs[j]) for j in range(1, 8)])

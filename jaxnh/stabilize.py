@@ -111,12 +111,21 @@ class ProjectedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSol
 
     solver: diffrax.AbstractAdaptiveSolver
     project: Callable
+    # diffrax's ForwardMode sets `scan_kind` on every solver it takes for a Runge–Kutta
+    # method (this wrapper passes that test) so that its stages can be forward-
+    # differentiated; it is handed on to the wrapped solver in `step`.
+    scan_kind: Optional[str] = None
+
+    def _inner(self):
+        if self.scan_kind is not None and getattr(self.solver, "scan_kind", "") is None:
+            return eqx.tree_at(lambda s: s.scan_kind, self.solver, self.scan_kind, is_leaf=lambda x: x is None)
+        return self.solver
 
     def for_sensitivities(self, unravel: Callable, p_rest) -> "ProjectedSolver":
         """The same solver for the augmented state of `jaxnh.sensitivity` (y and its
         sensitivity columns raveled into one vector by `unravel`'s inverse; args
         `(differentiated params, their column directions)`, `p_rest` the other params)."""
-        return ProjectedSolver(self.solver, _SensitivityProjection(self.project, unravel, p_rest))
+        return ProjectedSolver(self.solver, _SensitivityProjection(self.project, unravel, p_rest), self.scan_kind)
 
     @property
     def stages_per_step(self) -> Optional[int]:
@@ -154,7 +163,7 @@ class ProjectedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSol
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         # made_jump=True: the FSAL derivative of the previous (unprojected) end
         # point is stale after projection, so the first stage is re-evaluated.
-        y1, y_error, dense_info, solver_state, result = self.solver.step(
+        y1, y_error, dense_info, solver_state, result = self._inner().step(
             terms, t0, t1, y0, args, solver_state, True
         )
         y1_projected = self.project(t1, y1, args)

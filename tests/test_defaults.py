@@ -13,8 +13,8 @@ import jaxnh as nh
 from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
 from jaxnh.sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
-from jaxnh.simulate import DOP853_BELOW_RTOL, default_solver
-from jaxnh.solvers import DOP853, Tsit5
+from jaxnh.simulate import DOP853_BELOW_RTOL, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
+from jaxnh.solvers import Tsit5
 
 MECH = V.mechanism()
 P = V.default_params()
@@ -26,9 +26,24 @@ def qd0(p, w=1.0):
     return jnp.stack([w, w * p.U21(0.0)])
 
 
-def test_default_solver_by_tolerance():
-    assert isinstance(default_solver(10 * DOP853_BELOW_RTOL), Tsit5)
-    assert isinstance(default_solver(DOP853_BELOW_RTOL / 10), DOP853)
+def test_default_solver_by_tolerance_size_and_method():
+    loose, tight = 10 * DOP853_BELOW_RTOL, DOP853_BELOW_RTOL / 10
+    assert isinstance(default_solver(loose), Tsit5)
+    assert isinstance(default_solver(loose, UNROLL_MAX_OPERATIONS), Tsit5)
+    assert isinstance(default_solver(loose, UNROLL_MAX_OPERATIONS + 1), diffrax.Tsit5)
+    assert isinstance(default_solver(loose, 10, "lagrange"), diffrax.Tsit5)
+    assert isinstance(default_solver(tight), diffrax.Dopri8)
+    assert isinstance(default_solver(tight, 10**5), diffrax.Dopri8)
+
+
+def test_vector_field_size_is_counted_under_jit():
+    """The variator's Appell vector field is small (unrolled solver); counting works on traced
+    values too, so the choice is the same under jit."""
+    form = nh.equations.formulation(MECH, "appell", Q0, qd0(P), 0.0, P, (0,))
+    y0 = form.state(Q0, qd0(P), 0.0, P)
+    n = vector_field_operations(form, 0.0, y0, P)
+    assert 20 < n <= UNROLL_MAX_OPERATIONS
+    assert jax.jit(lambda p: jnp.asarray(vector_field_operations(form, 0.0, y0, p)))(P) == n
 
 
 @pytest.mark.parametrize("rtol", [1e-6, 1e-11])
