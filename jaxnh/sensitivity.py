@@ -59,7 +59,10 @@ def auto_adjoint(params, q0, qd0, max_forward: int = FORWARD_MAX_PARAMETERS):
     return ForwardSensitivity() if n <= max_forward else diffrax.RecursiveCheckpointAdjoint()
 
 
-def _solve(vector_field, solver, y0, args, ts, controller, max_steps, dt0, throw):
+def solve_at(vector_field, solver, y0, args, ts, controller, max_steps, dt0, throw,
+             adjoint=diffrax.ForwardMode()):
+    """diffrax's solve of y' = vector_field(t, y, args) from ts[0], reported at ts:
+    (ys, result, stats)."""
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(vector_field),
         solver,
@@ -71,7 +74,7 @@ def _solve(vector_field, solver, y0, args, ts, controller, max_steps, dt0, throw
         saveat=diffrax.SaveAt(ts=ts),
         stepsize_controller=controller,
         max_steps=max_steps,
-        adjoint=diffrax.ForwardMode(),  # only reached by higher-order derivatives
+        adjoint=adjoint,  # ForwardMode for the sensitivity solves: only reached by higher-order derivatives
         throw=throw,
     )
     return sol.ys, sol.result, sol.stats
@@ -85,7 +88,7 @@ def solve_forward_sensitivity(params, y0, ts, controller, *, vector_field, solve
     RMS norm). Differentiable in `params` and `y0` by forward sensitivities
     (see the module docstring).
     """
-    return _solve(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
+    return solve_at(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
 
 
 @solve_forward_sensitivity.def_jvp
@@ -110,7 +113,7 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     sizes_y = [x.size if on else 0 for x, on in zip(y_leaves, y_on)]
     P = sum(sizes_p) + sum(sizes_y)
     if P == 0:
-        out = _solve(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
+        out = solve_at(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
         return out, jtu.tree_map(lambda _: None, out)
 
     dtype = jnp.result_type(*y_leaves)
@@ -148,7 +151,7 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     y_controller = eqx.tree_at(lambda c: c.norm, controller, y_norm)
     if hasattr(solver, "for_sensitivities"):  # a projection after each step: project the columns too
         solver = solver.for_sensitivities(unravel, p_rest)
-    zs, result, stats = _solve(augmented, solver, z0, (p_diff, E), ts, y_controller, max_steps, dt0, throw)
+    zs, result, stats = solve_at(augmented, solver, z0, (p_diff, E), ts, y_controller, max_steps, dt0, throw)
     ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]

@@ -16,7 +16,7 @@ from .equations.base import as_float
 from .equations.lagrange import Lagrange
 from .consistent import consistent_velocities
 from .mechanism import Mechanism
-from .sensitivity import ForwardSensitivity, auto_adjoint, solve_forward_sensitivity
+from .sensitivity import ForwardSensitivity, auto_adjoint, solve_at, solve_forward_sensitivity
 from .solvers import Tsit5
 from .stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
@@ -38,6 +38,13 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The solve finished but a reported value (coordinates, velocities, multipliers, "
         "energy or constraint residual) is NaN or inf: an overflow, or a singular "
         "dependent-velocity block at a report time."
+    )
+    singular_split = (
+        "The dependent-velocity block of the constraint matrix (the columns not in "
+        "`independent`) became singular during the run: its determinant vanished or "
+        "changed sign between report times. The Appell split is invalid there and the "
+        "motion reported after it is not trustworthy. Pass `independent=` so that the "
+        "dependent block stays regular over the whole motion, or use method='lagrange'."
     )
 
 
@@ -354,21 +361,9 @@ def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0,
             vector_field=form_vector_field, solver=solver, max_steps=max_steps, dt0=dt0, throw=throw,
         )
     else:
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field),
-            solver,
-            t0=ts_run[0],
-            t1=ts_run[-1],
-            dt0=dt0,
-            y0=y0_run,
-            args=params_run,
-            saveat=diffrax.SaveAt(ts=ts_run),
-            stepsize_controller=controller,
-            max_steps=max_steps,
-            adjoint=adjoint,
-            throw=throw,
+        sol_ys, sol_result, sol_stats = solve_at(
+            vector_field, solver, y0_run, params_run, ts_run, controller, max_steps, dt0, throw, adjoint
         )
-        sol_ys, sol_result, sol_stats = sol.ys, sol.result, sol.stats
     ys = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.nan), sol_ys)
     if isinstance(solver, ProjectedSolver):  # dense output between steps is unprojected
         args = (form, params) if isinstance(solver.project, ParamsOf) else params
@@ -391,6 +386,17 @@ def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0,
     result = STATUS.where(bad_output, STATUS.non_finite_output, result)
     if throw:
         q = eqx.error_if(q, bad_output, STATUS[STATUS.non_finite_output])
+    split = getattr(form, "split", None)
+    if split is not None and split.dependent:
+        # A split that passes through a singular block gives a wrong motion with a
+        # successful solve (benchmarks/STABILITY.md, C): check it at the report times.
+        det = jax.vmap(lambda a, b, t: split.dependent_block_determinant(a, b, t, params))(q, qd, ts)
+        tiny = jnp.sqrt(jnp.finfo(det.dtype).eps)
+        singular = jnp.any((jnp.sign(det) != jnp.sign(det[0])) | (jnp.abs(det) < tiny))
+        singular = (result == STATUS.successful) & singular
+        result = STATUS.where(singular, STATUS.singular_split, result)
+        if throw:
+            q = eqx.error_if(q, singular, STATUS[STATUS.singular_split])
     return (q, qd), result, stats, out
 
 

@@ -308,6 +308,31 @@ def _sub(a, b):
     return jtu.tree_map(lambda x, y: x - y, a, b)
 
 
+class _UnrolledFSAL(diffrax.AbstractAdaptiveSolver):
+    """What jaxnh's unrolled first-same-as-last Runge–Kutta solvers share: the solver
+    state is f(t0, y0), the first stage of the next step."""
+
+    def init(self, terms, t0, t1, y0, args):
+        del t1
+        return terms.vf(t0, y0, args)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    @staticmethod
+    def _first_stage(vf, t0, y0, args, f_prev, made_jump):
+        """f(t0, y0): the previous step's last stage, unless a jump in the vector field
+        was just made (then it is stale and evaluated again)."""
+        if made_jump is False:
+            return f_prev
+
+        def fresh():
+            f_new = vf(t0, y0, args)
+            return jtu.tree_map(lambda a, b: jnp.where(made_jump, a, b), f_new, f_prev)
+
+        return lax.cond(eqxi.unvmap_any(made_jump), fresh, lambda: f_prev)
+
+
 class _DOP853Interpolation(diffrax.AbstractLocalInterpolation):
     """Hairer's 7th-order continuous extension of DOP853 on one step [t0, t1].
 
@@ -341,7 +366,7 @@ class _DOP853Interpolation(diffrax.AbstractLocalInterpolation):
         return jtu.tree_map(leaf, self.coeffs)
 
 
-class DOP853(diffrax.AbstractAdaptiveSolver):
+class DOP853(_UnrolledFSAL):
     """Dormand–Prince 8(5,3) explicit Runge–Kutta method (Hairer's DOP853), unrolled.
 
     **What it is.** The 12-stage, 8th-order Runge–Kutta method of Prince and Dormand
@@ -392,14 +417,6 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
         del terms
         return 8
 
-    def init(self, terms, t0, t1, y0, args):
-        del t1
-        # The solver state is f(t0, y0): the first stage of the next step (FSAL).
-        return terms.vf(t0, y0, args)
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
@@ -412,20 +429,7 @@ class DOP853(diffrax.AbstractAdaptiveSolver):
             c = _C[i - 1]
             return t1 if c == 1.0 else t0 + c * dt
 
-        # Stage 1: reuse f(t0, y0) from the previous step unless a jump in the vector
-        # field was just made, in which case it is stale and is evaluated again.
-        f_prev = solver_state
-        if made_jump is False:
-            f1 = f_prev
-        else:
-
-            def fresh():
-                f_new = vf(t0, y0, args)
-                return jtu.tree_map(
-                    lambda a, b: jnp.where(made_jump, a, b), f_new, f_prev
-                )
-
-            f1 = lax.cond(eqxi.unvmap_any(made_jump), fresh, lambda: f_prev)
+        f1 = self._first_stage(vf, t0, y0, args, solver_state, made_jump)  # FSAL
 
         fs = {1: f1}
         for i in range(2, 13):
@@ -538,7 +542,7 @@ class _Tsit5Interpolation(diffrax.AbstractLocalInterpolation):
         return jtu.tree_map(leaf, self.y0, self.ks)
 
 
-class Tsit5(diffrax.AbstractAdaptiveSolver):
+class Tsit5(_UnrolledFSAL):
     """Tsitouras' 5(4) explicit Runge–Kutta method, stages unrolled (drop-in for `diffrax.Tsit5`).
 
     7 stages, first-same-as-last (6 vector-field evaluations per step), 5th
@@ -561,13 +565,6 @@ class Tsit5(diffrax.AbstractAdaptiveSolver):
         del terms
         return 5  # diffrax.Tsit5's choice, so both take the same steps
 
-    def init(self, terms, t0, t1, y0, args):
-        del t1
-        return terms.vf(t0, y0, args)
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
@@ -576,16 +573,7 @@ class Tsit5(diffrax.AbstractAdaptiveSolver):
         def prod(f):
             return terms.prod(f, control)
 
-        f_prev = solver_state
-        if made_jump is False:
-            f1 = f_prev
-        else:
-
-            def fresh():
-                f_new = vf(t0, y0, args)
-                return jtu.tree_map(lambda a, b: jnp.where(made_jump, a, b), f_new, f_prev)
-
-            f1 = lax.cond(eqxi.unvmap_any(made_jump), fresh, lambda: f_prev)
+        f1 = self._first_stage(vf, t0, y0, args, solver_state, made_jump)
 
         fs = {1: f1}
         for i in range(2, 7):

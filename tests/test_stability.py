@@ -472,6 +472,20 @@ def test_singular_dependent_block_fails_loudly():
     assert "singular" in sol.message and "method='lagrange'" in sol.message
 
 
+def test_split_passing_through_a_singular_block_is_not_a_success():
+    """U21 from 2 through 0 to −0.01 and back, with phi1' dependent (the split chosen at
+    t = 0): the solve itself runs through (measured: error 1.1e-3 with a success status
+    before this check), but the dependent block changes sign between report times, so
+    the status says the split became singular; throw=True raises."""
+    p = near_zero_params(-1e-2)
+    sol = run(p, TS2, "appell", independent=(1,))
+    assert sol.status == nh.STATUS.singular_split
+    assert "independent=" in sol.message and "method='lagrange'" in sol.message
+    with pytest.raises(Exception, match="dependent-velocity block"):
+        run(p, TS2, "appell", independent=(1,), throw=True)
+    assert bool(run(p, TS2, "appell").success)  # phi1' independent: the block (−1) stays regular
+
+
 # --- redundant constraints ---------------------------------------------------------
 
 

@@ -122,6 +122,17 @@ class VelocitySplit(eqx.Module):
             parts[i] = x[j]
         return jnp.stack(parts)
 
+    def dependent_block_determinant(self, q, qd, t, params):
+        """det of the dependent block A_D of A = ∂c/∂qd, each row scaled by its norm in A:
+        a dimensionless, signed measure of how regular the split is (±1 at best, 0 when
+        the dependent velocities cannot be solved for). 1 when nothing is dependent."""
+        if not self.dependent:
+            return jnp.ones((), q.dtype)
+        A = jax.jacfwd(lambda u: self.mech.constraint(q, u, t, params))(qd)
+        A = A / jnp.maximum(jnp.linalg.norm(A, axis=1, keepdims=True), jnp.finfo(A.dtype).tiny)
+        AD = jnp.stack([A[:, i] for i in self.dependent], axis=1)
+        return AD[0, 0] if AD.shape[0] == 1 else jnp.linalg.det(AD)
+
     def velocities(self, q, v, t, params):
         """All velocities qd (s,) satisfying the constraints, from independent v (k,)."""
         m = len(self.dependent)
