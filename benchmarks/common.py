@@ -54,8 +54,12 @@ from jaxnh.equations import formulation  # noqa: E402
 from jaxnh.solvers import DOP853, Tsit5  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
-RESULTS = HERE / "results"
-FIGURES = HERE / "figures"
+# Where JSON results, figures and RESULTS.md go: benchmarks/ itself (the committed record), or the
+# folder in $JAXNH_BENCH_OUT (`make bench-quick` uses benchmarks/quick/ so a short run does not
+# overwrite the full results).
+OUT = pathlib.Path(os.environ["JAXNH_BENCH_OUT"]).resolve() if os.environ.get("JAXNH_BENCH_OUT") else HERE
+RESULTS = OUT / "results"
+FIGURES = OUT / "figures"
 
 _integrate = sys.modules["jaxnh.simulate"]._integrate
 
@@ -249,7 +253,7 @@ def _revision() -> str:
 
 
 def save(name: str, data: dict) -> pathlib.Path:
-    RESULTS.mkdir(exist_ok=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     data = dict(data)
     data.setdefault("machine", machine())
     path = RESULTS / f"{name}.json"

@@ -11,6 +11,7 @@ from __future__ import annotations
 from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
 
 import math
+import os
 
 import matplotlib
 
@@ -364,9 +365,11 @@ def build(R) -> tuple[str, dict]:
     m = next((R[k]["machine"] for k in ("wp_variator", "overhead", "gradients", "throughput", "compile_time")
               if R.get(k)), C.machine())
     L = ["# jaxnh performance benchmarks (issue 4)", "",
-         "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`); "
-         "`python -m benchmarks.run_all --quick` is the short version. Every number below is written by "
-         "`benchmarks/report.py` from `benchmarks/results/*.json`.", "",
+         "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`, "
+         "about an hour on this 2-core machine); `make bench-quick` (= `JAXNH_BENCH_OUT=benchmarks/quick python -m "
+         "benchmarks.run_all --quick`) is the short version, written to `benchmarks/quick/` so it does not "
+         "overwrite these results. Every number below is written by "
+         "`benchmarks/report.py` from the `results/*.json` files beside this file.", "",
          "## Machine and method", "",
          f"* CPU: {m['cpu']}, {m['cores']} cores; {m['platform']}",
          f"* Python {m['python']}, jax {m['jax']} (jaxlib {m['jaxlib']}), diffrax {m['diffrax']}, equinox "
@@ -476,14 +479,14 @@ def build(R) -> tuple[str, dict]:
     present = [p for p, path in others if path.exists()]
     if present:
         L += ["## Other benchmark reports", "", "Written by their own scripts (run by `run_all` when present): "
-              + ", ".join(f"[{p}]({p})" for p in present) + ".", ""]
+              + ", ".join(f"[{p}]({os.path.relpath(C.HERE / p, C.OUT)})" for p in present) + ".", ""]
     return "\n".join(L) + "\n", head
 
 
 def main():
     names = ("wp_variator", "wp_generic", "overhead", "throughput", "gradients", "compile_time")
     R = {k: C.load(k) for k in names}
-    C.FIGURES.mkdir(exist_ok=True)
+    C.FIGURES.mkdir(parents=True, exist_ok=True)
     for k in ("wp_variator", "wp_generic"):
         if R.get(k):
             fig_wp(R[k], C.FIGURES / f"{k.replace('wp_', 'wp_')}.png")
@@ -493,9 +496,9 @@ def main():
     if R.get("gradients"):
         fig_gradients(R["gradients"], C.FIGURES / "gradients.png")
     text, head = build(R)
-    (C.HERE / "RESULTS.md").write_text(text)
+    (C.OUT / "RESULTS.md").write_text(text)
     C.save("headline", dict(head))
-    C.log(f"[report] wrote {C.HERE / 'RESULTS.md'}")
+    C.log(f"[report] wrote {C.OUT / 'RESULTS.md'}")
     for k, v in head.items():
         C.log(f"  {k}: {v:.3g}")
 

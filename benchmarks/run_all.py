@@ -70,7 +70,7 @@ def main(argv=None):
     C.save("run_all", dict(runs=log, quick=a.quick, seconds=time.perf_counter() - t0))
     failed = [r["module"] for r in log if r["returncode"] != 0]
     C.log(f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
-          + (f"FAILED: {failed}" if failed else "all ok") + f"; see {C.HERE / 'RESULTS.md'}")
+          + (f"FAILED: {failed}" if failed else "all ok") + f"; see {C.OUT / 'RESULTS.md'}")
     sys.exit(1 if failed else 0)
 
 
