@@ -19,30 +19,35 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxnh.simulate import DOP853_BELOW_RTOL, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
+from jaxnh.simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
 
 _OPS: dict = {}
 
 
-def appell_operations(problem: str) -> int:
-    """Size (JAX operations) of the Appell vector field of a work-precision problem: what
-    `simulate(solver=None)` passes to `default_solver`."""
-    if problem not in _OPS:
+def operations(problem: str, method: str = "appell") -> int:
+    """Size (JAX operations) of the vector field of a work-precision problem in one
+    formulation: what `simulate(solver=None)` passes to `default_solver`."""
+    if (problem, method) not in _OPS:
         from jaxnh.equations import formulation
 
         from . import problems as PB
 
         v = PB.variator() if problem == "variator" else PB.generic()
         ind = (0,) if problem == "variator" else v.independent
-        form = formulation(v.mech, "appell", v.q0, v.qd0, 0.0, v.params, ind)
-        _OPS[problem] = vector_field_operations(form, 0.0, form.state(v.q0, v.qd0, 0.0, v.params), v.params)
-    return _OPS[problem]
+        form = formulation(v.mech, method, v.q0, v.qd0, 0.0, v.params, ind)
+        _OPS[problem, method] = vector_field_operations(form, 0.0, form.state(v.q0, v.qd0, 0.0, v.params), v.params)
+    return _OPS[problem, method]
 
 
-def default_key(problem: str):
-    """rtol -> the SOLVERS label `simulate(solver=None, method="appell")` uses on `problem`."""
-    ops = appell_operations(problem)
-    return lambda r: C.solver_key(default_solver(r, ops, "appell"))
+def appell_operations(problem: str) -> int:
+    return operations(problem, "appell")
+
+
+def default_key(problem: str, method: str = "appell"):
+    """rtol -> the SOLVERS label `simulate(solver=None, method=method)` uses on `problem`."""
+    ops = operations(problem, method)
+    return lambda r: C.solver_key(default_solver(r, ops, method))
+
 
 SOLVER_COLORS = {"Tsit5": "tab:blue", "Tsit5u": "tab:cyan", "Dopri5": "tab:green", "Dopri8": "tab:olive",
                  "DOP853": "tab:red", "Kvaerno5": "tab:purple", "RK45": "tab:gray", "LSODA": "tab:brown",
@@ -281,28 +286,32 @@ def targets(R) -> tuple[list, dict]:
     for wp in (wpv, wpg):
         if not wp:
             continue
-        for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
-                            ("default_solver(rtol)", default_key(wp["problem"]))):
-            slow = default_slowdown(wp, pick)
-            if slow:
-                worst = max(slow.values())
-                rows.append([f"6. {wp['problem']}: {label}, slowest vs the fastest appell solver at the same error, "
-                             f"over rtol {max(slow):g} … {min(slow):g}", "≈ 1×", fmt_x(worst),
-                             "yes" if worst <= 1.15 else "no"])
+        for method in ("appell", "lagrange"):
+            for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
+                                ("default_solver(rtol)", default_key(wp["problem"], method))):
+                slow = default_slowdown(wp, pick, method)
+                if slow:
+                    v = list(slow.values())
+                    worst, mean = max(v), math.exp(sum(math.log(x) for x in v) / len(v))
+                    rows.append([f"6. {wp['problem']} {method}: {label} vs the fastest {method} solver at the same "
+                                 f"error, over rtol {max(slow):g} … {min(slow):g} (mean / worst)", "≈ 1×",
+                                 f"{fmt_x(mean)} / {fmt_x(worst)}",
+                                 "yes" if worst <= 1.15 else ("on average" if mean <= 1.15 else "no")])
     return rows, head
 
 
-def default_slowdown(wp, pick) -> dict:
-    """rtol -> time of the solver `pick(rtol)` picks / time of the fastest appell solver at the error it reaches."""
+def default_slowdown(wp, pick, method: str = "appell") -> dict:
+    """rtol -> time of the solver `pick(rtol)` picks / time of the fastest explicit solver of the same
+    formulation (`method`) at the error it reaches."""
     cv = _curves(wp)
     out = {}
     for r in wp["tols"]:
-        key = f"appell/{pick(r)}"
+        key = f"{method}/{pick(r)}"
         pts = [p for p in cv.get(key, []) if p["rtol"] == r]
         if not pts:
             continue
         e, t = pts[0]["error"], pts[0]["time"]
-        best = [time_at(cv, n, e) for n in cv if n.startswith("appell/") and not n.endswith("Kvaerno5")]
+        best = [time_at(cv, n, e) for n in cv if n.startswith(method + "/") and not n.endswith("Kvaerno5")]
         best = [b for b in best if b is not None] + [t]
         out[r] = t / min(best)
     return out
@@ -314,51 +323,65 @@ def default_section(R) -> list:
         wp = R.get(k)
         if not wp:
             continue
-        today = default_slowdown(wp, lambda r: "Tsit5")
-        pick = default_key(wp["problem"])
-        prop = default_slowdown(wp, pick)
         cv = _curves(wp)
-        rows = []
-        for r in wp["tols"]:
-            pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items() if n.startswith("appell/")}
-            fastest = min(((n, time_at(cv, n, pts["appell/" + pick(r)]["error"]))
-                           for n in pts if pts[n] is not None), key=lambda x: x[1] if x[1] is not None else 1e9,
-                          default=(None, None))
-            rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
-                         (fastest[0] or "—").split("/")[-1]])
-        L += [f"**{wp['problem']}** (Appell vector field: {appell_operations(wp['problem'])} operations)", "", table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
-                                                  "diffrax Tsit5 (previous default) / fastest", "fastest appell solver"],
-                                                 rows), ""]
+        for method in ("appell", "lagrange"):
+            if not any(n.startswith(method + "/") for n in cv):
+                continue
+            today = default_slowdown(wp, lambda r: "Tsit5", method)
+            pick = default_key(wp["problem"], method)
+            prop = default_slowdown(wp, pick, method)
+            rows = []
+            for r in wp["tols"]:
+                pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items()
+                       if n.startswith(method + "/") and not n.endswith("Kvaerno5")}
+                mine = pts.get(f"{method}/{pick(r)}")
+                if mine is None:
+                    continue
+                fastest = min(((n, time_at(cv, n, mine["error"])) for n in pts if pts[n] is not None),
+                              key=lambda x: x[1] if x[1] is not None else 1e9, default=(None, None))
+                rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
+                             (fastest[0] or "—").split("/")[-1]])
+            L += [f"**{wp['problem']}, {method}** (vector field: {operations(wp['problem'], method)} operations)", "",
+                  table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
+                         "diffrax Tsit5 (previous default) / fastest", f"fastest {method} solver"], rows), ""]
     return L
 
 
+THRESHOLD_CANDIDATES = [10.0**-k for k in range(3, 12)]
 
 
-THRESHOLD_CANDIDATES = [10.0**-k for k in range(4, 12)]
-
-
-def threshold_scan(R) -> tuple[list, float | None]:
-    """For each candidate switch point θ (Dopri8 for rtol < θ, the default 5th-order solver above): the slowdown of that
-    rule against the fastest appell solver at the error reached, geometric mean and worst over the sweep
-    of each work-precision problem. Returns (table rows, θ with the smallest mean log slowdown over both)."""
-    wps = [R[k] for k in ("wp_variator", "wp_generic") if R.get(k)]
+def threshold_scan(R) -> tuple[list, dict]:
+    """For each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order solver above): the slowdown of
+    that rule against the fastest solver of the same formulation at the error reached, geometric mean and
+    worst over the sweep, for each (problem, formulation) the work-precision runs hold, grouped by the
+    5th-order solver `default_solver` uses there (unrolled Tsit5u, or diffrax's looped Tsit5). Returns
+    (header and table rows, {5th-order solver: {θ: geometric-mean slowdown over its group}})."""
+    cases = []
+    for k in ("wp_variator", "wp_generic"):
+        wp = R.get(k)
+        if not wp:
+            continue
+        cv = _curves(wp)
+        for method in ("appell", "lagrange"):
+            if any(n.startswith(method + "/") for n in cv):
+                cases.append((wp, method, default_key(wp["problem"], method)(1.0)))
     rows, score = [], {}
+    current = {"Tsit5u": DOP853_BELOW_RTOL, "Tsit5": DOPRI8_BELOW_RTOL_LOOPED}
     for th in THRESHOLD_CANDIDATES:
-        row, logs = [f"{th:g}" + (" (current)" if th == DOP853_BELOW_RTOL else "")], []
-        for wp in wps:
-            low = default_key(wp["problem"])(1.0)
-            sl = default_slowdown(wp, lambda r, th=th, low=low: "Dopri8" if r < th else low)
+        row = [f"{th:g}"]
+        for wp, method, low in cases:
+            sl = default_slowdown(wp, lambda r, th=th, low=low: "Dopri8" if r < th else low, method)
             v = [x for x in sl.values() if x is not None and math.isfinite(x)]
             if not v:
-                row += ["—", "—"]
+                row += ["—"]
                 continue
-            logs += [math.log(x) for x in v]
-            row += [fmt_x(math.exp(sum(math.log(x) for x in v) / len(v))), fmt_x(max(v))]
+            score.setdefault(low, {}).setdefault(th, []).extend(math.log(x) for x in v)
+            mark = " ◀" if current.get(low) == th else ""
+            row += [f"{fmt_x(math.exp(sum(math.log(x) for x in v) / len(v)))} / {fmt_x(max(v))}{mark}"]
         rows.append(row)
-        if logs:
-            score[th] = sum(logs) / len(logs)
-    best = min(score, key=score.get) if score else None
-    return rows, best
+    header = ["θ"] + [f"{wp['problem']} {method} (above θ: {low})" for wp, method, low in cases]
+    means = {low: {th: math.exp(sum(v) / len(v)) for th, v in d.items()} for low, d in score.items()}
+    return [header] + rows, means
 
 
 def build(R) -> tuple[str, dict]:
@@ -391,22 +414,31 @@ def build(R) -> tuple[str, dict]:
     rows, head = targets(R)
     L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
     if R.get("wp_variator") or R.get("wp_generic"):
-        L += ["## Default solver", "", f"`jaxnh.simulate.default_solver(rtol, operations, method)`: diffrax Dopri8 for "
-              f"rtol < `DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; otherwise jaxnh's unrolled Tsit5 (Tsit5u) when the "
-              f"vector field has at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations and the "
-              "method is not lagrange, diffrax's Tsit5 else. For each sweep tolerance: the "
-              "solver it picks, and how much slower it is than the fastest appell solver at the error it reaches "
-              "(times interpolated on the work-precision curves).", ""] + default_section(R)
+        L += ["## Default solver", "", "`jaxnh.simulate.default_solver(rtol, operations, method)`: for a vector "
+              f"field of at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations in the appell "
+              "(or substituted) form, jaxnh's unrolled Tsit5 (Tsit5u), and diffrax Dopri8 for rtol < "
+              f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; for larger vector fields and for lagrange, diffrax's "
+              f"Tsit5, and Dopri8 for rtol < `DOPRI8_BELOW_RTOL_LOOPED` = {DOPRI8_BELOW_RTOL_LOOPED:g}. For each "
+              "sweep tolerance: the solver it picks, and how much slower it is than the fastest solver of the same "
+              "formulation at the error it reaches (times interpolated on the work-precision curves).", ""
+              ] + default_section(R)
         rows, best = threshold_scan(R)
-        probs = [R[k]["problem"] for k in ("wp_variator", "wp_generic") if R.get(k)]
-        L += ["**Where to switch.** Each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order default above), its "
-              "slowdown against the fastest appell solver at the error reached: geometric mean and worst over the "
-              "sweep, per problem.", "",
-              table(["θ"] + [f"{p} {w}" for p in probs for w in ("mean", "worst")], rows), "",
-              f"Smallest mean slowdown over both problems: θ = {best:g}; `DOP853_BELOW_RTOL` is "
-              f"{DOP853_BELOW_RTOL:g}" + (" (the same)." if best == DOP853_BELOW_RTOL else
-                                          " (differs: see the closing note of issue 4 for why).") if best else "", ""]
-        head["best_threshold"] = best
+        current = {"Tsit5u": ("DOP853_BELOW_RTOL", DOP853_BELOW_RTOL),
+                   "Tsit5": ("DOPRI8_BELOW_RTOL_LOOPED", DOPRI8_BELOW_RTOL_LOOPED)}
+        verdict = []
+        for low, m in best.items():
+            th = min(m, key=m.get)
+            name, now = current[low]
+            same = " (the same)" if th == now else (
+                f" (mean slowdown {m[now]:.3f}× against {m[th]:.3f}×: within 1 %)" if m.get(now, 9) <= 1.01 * m[th]
+                else " (differs: see the closing note of issue 4)")
+            verdict.append(f"above θ {C.SOLVER_LABELS.get(low, low)}: smallest mean slowdown at θ = {th:g}; "
+                           f"`{name}` is {now:g}" + same)
+            head[f"best_threshold_{low}"] = th
+        L += ["**Where to switch.** Each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order solver "
+              "`default_solver` uses above it), its slowdown against the fastest solver of the same formulation "
+              "at the error reached: geometric mean / worst over the sweep; ◀ marks the threshold in use.", "",
+              table(rows[0], rows[1:]), "", "; ".join(verdict) + ".", ""]
     if R.get("wp_variator") or R.get("wp_generic"):
         L += ["## Work-precision", ""]
         if R.get("wp_variator"):

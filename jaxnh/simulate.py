@@ -20,7 +20,7 @@ from .sensitivity import ForwardSensitivity, auto_adjoint, solve_at, solve_forwa
 from .solvers import Tsit5
 from .stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
-__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
+__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL", "DOPRI8_BELOW_RTOL_LOOPED",
            "UNROLL_MAX_OPERATIONS", "vector_field_operations"]
 
 RECORDABLE = ("multipliers", "energy", "residual")
@@ -110,6 +110,14 @@ DOP853_BELOW_RTOL = 1e-9
 """`default_solver` switches from a 5th- to an 8th-order method below this rtol
 (the name is historical: the 8th-order default is now `diffrax.Dopri8`)."""
 
+DOPRI8_BELOW_RTOL_LOOPED = 1e-5
+"""Where jaxnh's unrolled Tsit5 is not used (large vector fields, "lagrange"),
+`default_solver` switches to `diffrax.Dopri8` already below this rtol: both
+diffrax solvers loop over their stages, and on the work-precision benchmarks
+Dopri8 was the faster of the two at every error below ≈ 1e-5 (10-coordinate
+mechanism, both forms; variator, Lagrange form: benchmarks/RESULTS.md,
+"Default solver")."""
+
 UNROLL_MAX_OPERATIONS = 300
 """Vector fields of at most this many JAX operations may get jaxnh's unrolled Tsit5.
 
@@ -135,17 +143,18 @@ def default_solver(rtol: float, operations: Optional[int] = None, method: str = 
     Returns the fastest choice at matched error on the work-precision
     benchmarks (variator and a 10-coordinate mechanism, benchmarks/RESULTS.md,
     "Default solver"):
-    * rtol < `DOP853_BELOW_RTOL`: `diffrax.Dopri8` (8th order);
-    * otherwise a 5th-order Tsitouras method: jaxnh's unrolled
-      `jaxnh.solvers.Tsit5` for small vector fields (at most
-      `UNROLL_MAX_OPERATIONS`) in the "appell" and "substituted" forms,
-      `diffrax.Tsit5` for large ones and for "lagrange" (whose unrolled step
-      measured 2.4× slower than diffrax's on the variator).
+    * small vector fields (at most `UNROLL_MAX_OPERATIONS`) in the "appell"
+      and "substituted" forms: jaxnh's unrolled 5th-order
+      `jaxnh.solvers.Tsit5`, and `diffrax.Dopri8` (8th order) for rtol <
+      `DOP853_BELOW_RTOL`;
+    * large vector fields and "lagrange" (whose unrolled step measured 2.4×
+      slower than diffrax's on the variator): `diffrax.Tsit5`, and
+      `diffrax.Dopri8` for rtol < `DOPRI8_BELOW_RTOL_LOOPED`.
     """
-    if rtol < DOP853_BELOW_RTOL:
-        return diffrax.Dopri8()
     small = operations is None or operations <= UNROLL_MAX_OPERATIONS
-    return Tsit5() if small and method != "lagrange" else diffrax.Tsit5()
+    if small and method != "lagrange":
+        return diffrax.Dopri8() if rtol < DOP853_BELOW_RTOL else Tsit5()
+    return diffrax.Dopri8() if rtol < DOPRI8_BELOW_RTOL_LOOPED else diffrax.Tsit5()
 
 
 def _count_operations(jaxpr) -> int:
@@ -231,8 +240,9 @@ def simulate(
             constraints hold exactly), "lagrange" (multipliers, state (q, qd))
             or "substituted" (the paper's wrong method, for comparison).
         solver: a diffrax solver; default `default_solver(rtol, size of the
-            vector field, method)`: Dopri8 for rtol < 1e-9, else a Tsit5
-            (jaxnh's unrolled one for small Appell vector fields).
+            vector field, method)`: for small Appell vector fields jaxnh's
+            unrolled Tsit5, Dopri8 below rtol 1e-9; otherwise diffrax's Tsit5,
+            Dopri8 below rtol 1e-5.
         rtol, atol: relative and absolute tolerances of the PID step control.
         record: any of "multipliers", "energy", "residual" — computed at the
             report times only when asked.

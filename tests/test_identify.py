@@ -21,7 +21,7 @@ import pytest
 import jaxnh as nh
 from jaxnh.identify import Record, fit, load_default, noise_level, read_csv, statistics, write_csv
 from jaxnh.identify.diagnostics import analyse
-from jaxnh.identify.fit import GN_STEP_TOL
+from jaxnh.identify.fit import GN_STEP_TOL, fit_solver
 from jaxnh.identify.parameters import Parametrisation
 from jaxnh.identify.variator import FREE, fit_variator, params_for, ratio_knots
 from jaxnh.models import variator as V
@@ -37,14 +37,16 @@ NOISE = 1e-4  # rad: weights only (the data below are noise-free)
 def clean_record(with_torques: bool = True) -> Record:
     """A noise-free record generated inside the model class: the variator with a
     spline U21 on the fit's knots and the embedded record's torques (as `Sampled`
-    inputs), integrated with `simulate`'s default settings — those the fit uses."""
+    inputs), integrated with the solver and tolerances the fit uses (`fit_solver`),
+    so the model reproduces the data exactly at the true parameters."""
     emb = load_default()
     inputs = emb.inputs if with_torques else {k: np.zeros_like(v) for k, v in emb.inputs.items()}
     base = Record(emb.t, emb.channels, inputs, "clean")
     U = CubicSpline(ratio_knots(base), TRUE["U21"])
     p = params_for(base, TRUE["J1"], TRUE["J2"], U)
     qd0 = jnp.array([TRUE["w0"], TRUE["U21"][0] * TRUE["w0"]])
-    q = np.asarray(nh.simulate(V.mechanism(), p, jnp.asarray(TRUE["phi0"]), qd0, jnp.asarray(emb.t)).q)
+    q = np.asarray(nh.simulate(V.mechanism(), p, jnp.asarray(TRUE["phi0"]), qd0, jnp.asarray(emb.t),
+                               solver=fit_solver(None, p, 1e-8)).q)
     return Record(emb.t, {"phi1": q[:, 0], "phi2": q[:, 1]}, inputs, "clean")
 
 

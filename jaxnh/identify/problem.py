@@ -275,6 +275,16 @@ def _print_progress(k, loss, best, step, y, labels, log, n):
           f"best {best}  trust radius {float(step):8.2e}  {vals}", flush=True)
 
 
+GN_STOP_TOL = 0.05
+"""Levenberg–Marquardt stops once the remaining Gauss–Newton step is below this
+many standard errors: it then moves no estimate by more than 5 % of its
+standard error. The ODE solver's own error sets a floor under that step (on the
+embedded variator experiment at rtol 1e-8: 0.005–0.045 standard errors), and a
+tolerance below the floor left the optimiser shrinking its trust region for
+30–40 extra iterations with no change in the estimates beyond 0.01 standard
+errors (measured over 5 noise realisations)."""
+
+
 class LevenbergMarquardt(optx.LevenbergMarquardt):
     """optimistix's Levenberg–Marquardt, working in scaled coordinates
     z = (θ − θ0) · scale, that also stops when the remaining Gauss–Newton
@@ -296,7 +306,7 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
     theta0: jax.Array
     scale: jax.Array
 
-    def __init__(self, rtol, atol, theta0, scale, gn_tol=1e-3, step_rtol=1e-10, verbose=False):
+    def __init__(self, rtol, atol, theta0, scale, gn_tol=GN_STOP_TOL, step_rtol=1e-10, verbose=False):
         super().__init__(rtol, atol, verbose=verbose)
         self.gn_tol, self.step_rtol = gn_tol, step_rtol
         self.theta0, self.scale = theta0, scale
@@ -323,7 +333,7 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
 
 @eqx.filter_jit
 def solve_least_squares(problem: Problem, theta0, data: Observations, tol: float = 1e-8,
-                        max_steps: int = 100, progress: Optional[_Progress] = None, gn_tol: float = 1e-3,
+                        max_steps: int = 100, progress: Optional[_Progress] = None, gn_tol: float = GN_STOP_TOL,
                         scale=None):
     """Levenberg–Marquardt (optimistix) from θ0; pure JAX, so it vmaps over data.
 
