@@ -91,9 +91,9 @@ def metrics(coef, ts=TS):
             "lam_max": jnp.max(jnp.abs(sol.multipliers)), "ok": sol.success}
 
 
-def objective(coef, weight, energy_ref=1.0):
+def objective(coef, weight, energy_ref=1.0, rtol=RTOL):
     """E / E_ref + weight · [((ω2(T) − ω*)/ω*)² + mean((|λ|/λ_max − 1)₊²)] (dimensionless)."""
-    sol = run(coef)
+    sol = run(coef, rtol=rtol)
     energy = M1 * sol.q[-1, 0]
     miss = (sol.qd[-1, 1] - W_TARGET) / W_TARGET
     over = jax.nn.relu(jnp.abs(sol.multipliers[:, 0]) / LAMBDA_MAX - 1.0)

@@ -178,12 +178,31 @@ def vector_field_operations(form, t, y, params) -> int:
 
     arrays, static = eqx.partition((form, t, y, params), eqx.is_array)
     arrays = jax.tree_util.tree_map(spec, arrays)
+    # tracing a large vector field takes a while (the bicycle: ~0.1 s; the variator ~20 ms,
+    # eight times simulate's other per-call work), so the count is remembered per structure
+    try:
+        key = (jax.tree_util.tree_structure((arrays, static)), tuple(jax.tree_util.tree_leaves(arrays)),
+               tuple(type(x) if isinstance(x, (bool, int, float, complex)) else x
+                     for x in jax.tree_util.tree_leaves(static)))
+        hash(key)
+    except TypeError:  # an unhashable static leaf: count every time
+        key = None
+    if key is not None and key in _OPERATIONS_CACHE:
+        return _OPERATIONS_CACHE[key]
 
     def field(a):
         f, t_, y_, p = eqx.combine(a, static)
         return f.vector_field(t_, y_, p)
 
-    return _count_operations(jax.make_jaxpr(field)(arrays).jaxpr)
+    n = _count_operations(jax.make_jaxpr(field)(arrays).jaxpr)
+    if key is not None:
+        if len(_OPERATIONS_CACHE) >= 256:
+            _OPERATIONS_CACHE.pop(next(iter(_OPERATIONS_CACHE)))
+        _OPERATIONS_CACHE[key] = n
+    return n
+
+
+_OPERATIONS_CACHE: dict = {}
 
 
 def _stages_per_step(solver) -> Optional[int]:

@@ -13,7 +13,6 @@ compiled once rather than once per unrolled stage (an unrolled 8th-order step co
 about 5× longer for the same accuracy).
 """
 
-import os
 
 import jax
 import jax.numpy as jnp
@@ -139,8 +138,8 @@ def test_constraints_and_energy_hold(runs):
         assert np.ptp(E) < 1e-9 * abs(E[0])  # no dissipation in the Whipple model
 
 
-@pytest.mark.skipif(not os.environ.get("JAXNH_SLOW"), reason="compiles the Newton-reduced Appell bicycle (minutes); set JAXNH_SLOW=1")
 def test_nonlinear_appell_with_newton_pitch_equals_lagrange(runs):
+    """The 7-coordinate Appell model (pitch by Newton) along the kicked run: ~50 s to compile."""
     q, qd = B.upright(5.0, P)
     sol = B.system().simulate(P, q, qd.at[B.ROLL].set(0.5), TS, method="appell", rtol=1e-10, atol=1e-12, solver=SOLVER)
     np.testing.assert_allclose(sol.q, runs["kick5"].q, atol=1e-7)

@@ -52,6 +52,23 @@ def test_vector_field_size_is_counted_under_jit():
     assert jax.jit(lambda p: jnp.asarray(vector_field_operations(form, 0.0, y0, p)))(P) == n
 
 
+def test_vector_field_size_is_remembered_per_structure():
+    """simulate(solver=None) counts on every call; the count is cached by the structure,
+    shapes and dtypes (not the values), and a different formulation is counted anew."""
+    from jaxnh.simulate import _OPERATIONS_CACHE
+
+    form = nh.equations.formulation(MECH, "appell", Q0, qd0(P), 0.0, P, (0,))
+    y0 = form.state(Q0, qd0(P), 0.0, P)
+    n = vector_field_operations(form, 0.0, y0, P)
+    size = len(_OPERATIONS_CACHE)
+    p2 = jax.tree_util.tree_map(lambda x: x * 1.5 if eqx.is_inexact_array(x) else x, P)
+    y1 = jax.tree_util.tree_map(lambda a: a + 1.0, y0)
+    assert vector_field_operations(form, 0.3, y1, p2) == n and len(_OPERATIONS_CACHE) == size
+    lag = nh.equations.formulation(MECH, "lagrange", Q0, qd0(P), 0.0, P, None)
+    m = vector_field_operations(lag, 0.0, lag.state(Q0, qd0(P), 0.0, P), P)
+    assert len(_OPERATIONS_CACHE) == size + 1 and m != n
+
+
 @pytest.mark.parametrize("rtol", [1e-6, 1e-11])
 def test_default_solve_matches_closed_form(rtol):
     sol = nh.simulate(MECH, P, Q0, qd0(P), TS, rtol=rtol, atol=rtol / 100)

@@ -509,7 +509,8 @@ def test_redundant_constraints():
     assert np.max(np.abs(np.asarray(sol.q) - np.asarray(single.q))) < 1e-12
     assert np.max(np.abs(np.asarray(sol.qd) - np.asarray(single.qd))) < 1e-12
     res = np.asarray(sol.residual)
-    np.testing.assert_allclose(res[:, 0], np.asarray(single.residual[:, 0]), rtol=1e-6, atol=1e-14)
+    # the residual U21 phi1' - phi2' is linear in qd with O(1) coefficients: it agrees as well as qd does
+    np.testing.assert_allclose(res[:, 0], np.asarray(single.residual[:, 0]), rtol=0, atol=1e-12)
     # minimum-norm multipliers of the rows c and 2c share the force in proportion: λ2 = 2 λ1
     lam = np.asarray(sol.multipliers)
     assert np.all(np.isfinite(lam))
