@@ -384,6 +384,49 @@ def threshold_scan(R) -> tuple[list, dict]:
     return [header] + rows, means
 
 
+def fmt_ns(s) -> str:
+    return f"{s * 1e9:.3g} ns" if s < 1e-6 else fmt_t(s)
+
+
+def kernel_slope(row) -> float:
+    """Least-squares slope of the Tsit5u step time on the kernels per step, s per kernel."""
+    keys = [k for k in row["step_kernels"] if f"{k}/Tsit5u" in row["step"]]
+    x = np.array([row["step_kernels"][k] for k in keys], float)
+    y = np.array([row["step"][f"{k}/Tsit5u"] for k in keys])
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def field_cost_section(fc) -> list:
+    """Where the time of a step goes (benchmarks/field_cost.py)."""
+    L = ["### Where a step's time goes", "",
+         "`benchmarks/field_cost.py`: one vector-field evaluation compiled alone (repeated in a loop at new (t, y) "
+         "each time), the XLA CPU kernels it compiles to, and one step of a compiled solve at rtol 1e-8 over a long "
+         "horizon. \"kernels per step\" counts the run-time instructions of the unrolled Tsit5's step loop body; "
+         f"a Tsit5 step evaluates the field {fc['stages_per_step']} times. The trivial field is an oscillator with "
+         "the same state layout: the integration loop with next to nothing to evaluate.", ""]
+    for row in fc["rows"]:
+        solvers = [s for s in ("Tsit5u", "Tsit5") if f"hand/{s}" in row["step"]]
+        rows = []
+        for k in ("appell", "lagrange", "hand", "trivial"):
+            field = row["field"].get(k)
+            step = row["step"][f"{k}/Tsit5u"]
+            rows.append([k, fmt_ns(field) if field is not None else "—",
+                         str(sum(row["kernels"][k].values())) if k in row["kernels"] else "—",
+                         str(row["step_kernels"][k]), fmt_t(step),
+                         f"{fc['stages_per_step'] * field / step:.0%}" if field is not None else "—"]
+                        + ([fmt_t(row["step"][f"{k}/Tsit5"])] if "Tsit5" in solvers else []))
+        slope = kernel_slope(row)
+        L += [f"**{row['problem']}**", "",
+              table(["field", "one evaluation", "kernels per evaluation", "kernels per Tsit5u step",
+                     "Tsit5u step", "field's share of the step"] + ["diffrax Tsit5 step"] * ("Tsit5" in solvers),
+                    rows), "",
+              f"Least-squares slope of the Tsit5u step time on the kernels per step: {slope * 1e9:.0f} ns per kernel "
+              "(a launch cost where the field's share is small; where it is large the slope also carries the "
+              "field's arithmetic).",
+              ""]
+    return L
+
+
 def build(R) -> tuple[str, dict]:
     m = next((R[k]["machine"] for k in ("wp_variator", "overhead", "gradients", "throughput", "compile_time")
               if R.get(k)), C.machine())
@@ -478,6 +521,9 @@ def build(R) -> tuple[str, dict]:
                           fmt_t(r["step_time"]["appell"]), fmt_t(r["step_time"]["lagrange"]),
                           fmt_t(r["step_time"]["hand"]), fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"])]
                          for r in ov["rheonomic"]]), ""]
+    fc = R.get("field_cost")
+    if fc:
+        L += field_cost_section(fc)
     tp = R.get("throughput")
     if tp:
         L += ["## Batch throughput", "", f"Variator, rtol {tp['rtol']:g}, `jit(vmap(...))`; figure "
@@ -516,7 +562,7 @@ def build(R) -> tuple[str, dict]:
 
 
 def main():
-    names = ("wp_variator", "wp_generic", "overhead", "throughput", "gradients", "compile_time")
+    names = ("wp_variator", "wp_generic", "overhead", "field_cost", "throughput", "gradients", "compile_time")
     R = {k: C.load(k) for k in names}
     C.FIGURES.mkdir(parents=True, exist_ok=True)
     for k in ("wp_variator", "wp_generic"):

@@ -22,7 +22,7 @@ import time
 
 from . import common as C
 
-OURS = ["work_precision", "overhead", "throughput", "gradients", "compile_time"]
+OURS = ["work_precision", "overhead", "field_cost", "throughput", "gradients", "compile_time"]
 OTHERS = ["stability", "calibration", "sweep_bench", "bicycle_cost"]
 
 

@@ -15,9 +15,32 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
+import numpy as np
 from jaxtyping import Array, Float
 
 UNROLL_MAX = 8
+
+
+def stack(parts):
+    """`jnp.stack(parts)` built by selects against constant masks.
+
+    In a compiled solve on CPU every concatenation of scalars is a kernel of
+    its own, whose fixed launch cost exceeds the arithmetic of a small
+    mechanism's whole right-hand side; selects fuse into their consumers
+    (variator, unrolled Tsit5: `benchmarks/field_cost.py`). Unlike a sum of
+    scaled unit vectors, a non-finite entry stays in its own place.
+    """
+    parts = [jnp.asarray(p) for p in parts]
+    n = len(parts)
+    if n <= 1:
+        return jnp.stack(parts)
+    dtype = jnp.result_type(*parts)
+    shape = jnp.broadcast_shapes(*(p.shape for p in parts))
+    index = np.arange(n).reshape((n,) + (1,) * len(shape))
+    out = jnp.broadcast_to(parts[0].astype(dtype), (n,) + shape)
+    for i in range(1, n):
+        out = jnp.where(index == i, parts[i].astype(dtype), out)
+    return out
 
 
 def mm(a, b):
@@ -167,8 +190,8 @@ def solve_square(A: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array
     A singular A gives inf/NaN entries, as LAPACK does.
     """
     n = A.shape[0]
-    if n == 1:
-        return b / A[0, 0]
+    if n == 1:  # by the reciprocal: solves with the same A share one division kernel
+        return b * (1 / A[0, 0])
     if n > UNROLL_MAX:
         return jnp.linalg.solve(A, b)
     rows = [A[i] for i in range(n)]
