@@ -165,10 +165,14 @@ def test_solve_square_pivots_and_differentiates():
     np.testing.assert_allclose(g, g_ref, rtol=1e-9)
 
 
-def test_fused_stack_equals_jnp_stack_and_keeps_non_finite_entries_in_place():
-    parts = [jnp.array(1.5), jnp.array(-2.0), jnp.array(jnp.inf), jnp.array(jnp.nan)]
-    out = stack(parts)
-    np.testing.assert_array_equal(out, jnp.stack(parts))  # inf and NaN only where they were
+@pytest.mark.parametrize("fused_max", [2, 4])
+def test_fused_stack_equals_jnp_stack_and_keeps_non_finite_entries_in_place(monkeypatch, fused_max):
+    import jaxnh.linalg
+
+    monkeypatch.setattr(jaxnh.linalg, "FUSED_STACK_MAX", fused_max)  # 4: the select path for every case below
+    for parts in ([jnp.array(jnp.inf), jnp.array(-2.0)], [jnp.array(1.5), jnp.array(-2.0), jnp.array(jnp.inf),
+                                                          jnp.array(jnp.nan)]):
+        np.testing.assert_array_equal(stack(parts), jnp.stack(parts))  # inf and NaN only where they were
     rows = [jnp.array([1.0, 2.0]), jnp.array([3.0, 4.0]), jnp.array([5.0, 6.0])]
     np.testing.assert_array_equal(stack(rows), jnp.stack(rows))
     assert stack([jnp.float32(1.0), jnp.float32(2.0)]).dtype == jnp.float32

@@ -120,7 +120,7 @@ class VelocitySplit(eqx.Module):
             parts[i] = v[j]
         for j, i in enumerate(self.dependent):
             parts[i] = x[j]
-        return stack(parts)  # fusible, where jnp.stack is a kernel per call in a compiled solve
+        return stack(parts)  # fused selects for the smallest mechanisms (jaxnh.linalg.stack)
 
     def dependent_block_determinant(self, q, qd, t, params):
         """det of the dependent block A_D of A = ∂c/∂qd, each row scaled by its norm in A:
