@@ -17,6 +17,19 @@ the hand-written ones inside a whole solve. This script splits that time:
   state layout): what the integration loop costs with (almost) nothing to
   evaluate.
 
+What was tried with it (2026-11-23, not adopted): building the variator's
+velocities by fused selects instead of `jnp.stack`, and 1×1 solves by one
+shared reciprocal, cut the Appell step from 69 to 51 kernels. A single
+unrolled-Tsit5 solve then ran about 10 % faster (appell/hand 1.22× against
+1.38× per step). But the same change made `vmap` batches of 1000 17–20 %
+slower: appell/hand 2.24–2.31× against 1.91×, measured in fresh processes
+with the hand-written batch as the in-process control. XLA gets its fewer
+kernels by duplicating arithmetic into several fusions, which costs real
+work once a batch amortises the launches. For larger mechanisms the effect
+came out either way (generic s = 10 single solve: 42 % slower). Sweeps and
+calibration run batched, so the change was reverted. Fewer kernels without
+duplicated work would need control of XLA's fusion, or a hand-written step.
+
     python -m benchmarks.field_cost [--quick]
 """
 

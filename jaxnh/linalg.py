@@ -15,39 +15,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
-import numpy as np
 from jaxtyping import Array, Float
 
 UNROLL_MAX = 8
-# Largest number of parts `stack` builds by selects; beyond it, jnp.stack.
-FUSED_STACK_MAX = 2
-
-
-def stack(parts):
-    """`jnp.stack(parts)`, built by selects against constant masks for at most
-    `FUSED_STACK_MAX` parts.
-
-    In a compiled solve on CPU every concatenation of scalars is a kernel of
-    its own, whose fixed launch cost exceeds the arithmetic of a small
-    mechanism's whole right-hand side; selects fuse into their consumers.
-    Measured with the unrolled Tsit5 (`benchmarks/field_cost.py`): the
-    variator's Appell step went from 69 to 51 kernels and from about 3.2 to
-    2.7 µs. For larger mechanisms XLA's fusion decisions came out either way
-    (generic mechanism, Appell: 23 % slower at s = 3, 30 % faster at s = 6,
-    42 % slower at s = 10), so they keep `jnp.stack`. Unlike a sum of scaled
-    unit vectors, the selects keep a non-finite entry in its own place.
-    """
-    parts = [jnp.asarray(p) for p in parts]
-    n = len(parts)
-    if n <= 1 or n > FUSED_STACK_MAX:
-        return jnp.stack(parts)
-    dtype = jnp.result_type(*parts)
-    shape = jnp.broadcast_shapes(*(p.shape for p in parts))
-    index = np.arange(n).reshape((n,) + (1,) * len(shape))
-    out = jnp.broadcast_to(parts[0].astype(dtype), (n,) + shape)
-    for i in range(1, n):
-        out = jnp.where(index == i, parts[i].astype(dtype), out)
-    return out
 
 
 def mm(a, b):
@@ -197,8 +167,8 @@ def solve_square(A: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array
     A singular A gives inf/NaN entries, as LAPACK does.
     """
     n = A.shape[0]
-    if n == 1:  # by the reciprocal: solves with the same A share one division kernel
-        return b * (1 / A[0, 0])
+    if n == 1:
+        return b / A[0, 0]
     if n > UNROLL_MAX:
         return jnp.linalg.solve(A, b)
     rows = [A[i] for i in range(n)]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh.linalg import solve_square, stack
+from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
 from jaxnh.sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
 from jaxnh.simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
@@ -163,26 +163,6 @@ def test_solve_square_pivots_and_differentiates():
     g = jax.grad(lambda a: jnp.sum(solve_square(a, b[:, 0]) ** 2))(A)
     g_ref = jax.grad(lambda a: jnp.sum(jnp.linalg.solve(a, b[:, 0]) ** 2))(A)
     np.testing.assert_allclose(g, g_ref, rtol=1e-9)
-
-
-@pytest.mark.parametrize("fused_max", [2, 4])
-def test_fused_stack_equals_jnp_stack_and_keeps_non_finite_entries_in_place(monkeypatch, fused_max):
-    import jaxnh.linalg
-
-    monkeypatch.setattr(jaxnh.linalg, "FUSED_STACK_MAX", fused_max)  # 4: the select path for every case below
-    for parts in ([jnp.array(jnp.inf), jnp.array(-2.0)], [jnp.array(1.5), jnp.array(-2.0), jnp.array(jnp.inf),
-                                                          jnp.array(jnp.nan)]):
-        np.testing.assert_array_equal(stack(parts), jnp.stack(parts))  # inf and NaN only where they were
-    rows = [jnp.array([1.0, 2.0]), jnp.array([3.0, 4.0]), jnp.array([5.0, 6.0])]
-    np.testing.assert_array_equal(stack(rows), jnp.stack(rows))
-    assert stack([jnp.float32(1.0), jnp.float32(2.0)]).dtype == jnp.float32
-    # derivatives and batching as jnp.stack
-    f = lambda a, b: jnp.sum(stack([a * b, a, b ** 2]) ** 2)  # noqa: E731
-    g = lambda a, b: jnp.sum(jnp.stack([a * b, a, b ** 2]) ** 2)  # noqa: E731
-    np.testing.assert_allclose(jax.grad(f, argnums=(0, 1))(0.7, -1.3), jax.grad(g, argnums=(0, 1))(0.7, -1.3),
-                               rtol=1e-15)
-    xs = jnp.linspace(0.0, 1.0, 5)
-    np.testing.assert_array_equal(jax.vmap(lambda x: stack([x, 2 * x]))(xs), jnp.stack([xs, 2 * xs], axis=1))
 
 
 def test_shape_checks_are_remembered():

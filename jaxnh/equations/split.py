@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..linalg import solve_square, stack
+from ..linalg import solve_square
 from ..mechanism import Mechanism, check_independent
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
@@ -120,7 +120,7 @@ class VelocitySplit(eqx.Module):
             parts[i] = v[j]
         for j, i in enumerate(self.dependent):
             parts[i] = x[j]
-        return stack(parts)  # fused selects for the smallest mechanisms (jaxnh.linalg.stack)
+        return jnp.stack(parts)
 
     def dependent_block_determinant(self, q, qd, t, params):
         """det of the dependent block A_D of A = ∂c/∂qd, each row scaled by its norm in A:
