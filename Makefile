@@ -1,6 +1,6 @@
 # make demo  — set up .venv (if missing) and run the main job on the embedded data
 # make test  — set up .venv (if missing) and run the test suite
-# make bench — set up .venv and regenerate benchmarks/RESULTS.md and figures (about an hour)
+# make bench — set up .venv and regenerate benchmarks/RESULTS.md and figures (20–60 min, by load)
 # make bench-quick — the short suite (a few minutes), written to benchmarks/quick/
 
 PYTHON ?= python3

@@ -432,7 +432,7 @@ def build(R) -> tuple[str, dict]:
               if R.get(k)), C.machine())
     L = ["# jaxnh performance benchmarks (issue 4)", "",
          "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`, "
-         "about an hour on this 2-core machine); `make bench-quick` (= `JAXNH_BENCH_OUT=benchmarks/quick python -m "
+         "20–60 minutes on this 2-core machine, by its load); `make bench-quick` (= `JAXNH_BENCH_OUT=benchmarks/quick python -m "
          "benchmarks.run_all --quick`) is the short version, written to `benchmarks/quick/` so it does not "
          "overwrite these results. Every number below is written by "
          "`benchmarks/report.py` from the `results/*.json` files beside this file.", "",
