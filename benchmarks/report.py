@@ -39,8 +39,21 @@ def operations(problem: str, method: str = "appell") -> int:
     return _OPS[problem, method]
 
 
-def appell_operations(problem: str) -> int:
-    return operations(problem, "appell")
+def gmean(values) -> float:
+    """Geometric mean (of slowdown ratios)."""
+    return math.exp(sum(math.log(x) for x in values) / len(values))
+
+
+def wp_formulations(R):
+    """(work-precision run, formulation) for every formulation a run of R holds, variator first."""
+    for k in ("wp_variator", "wp_generic"):
+        wp = R.get(k)
+        if not wp:
+            continue
+        cv = _curves(wp)
+        for method in ("appell", "lagrange"):
+            if any(n.startswith(method + "/") for n in cv):
+                yield wp, method
 
 
 def default_key(problem: str, method: str = "appell"):
@@ -218,8 +231,7 @@ def _median(xs):
 def targets(R) -> tuple[list, dict]:
     """Rows (target, goal, measured, met) and the headline numbers."""
     rows, head = [], {}
-    ov, wpv, wpg, tp, gr, ct = (R.get(k) for k in ("overhead", "wp_variator", "wp_generic", "throughput",
-                                                   "gradients", "compile_time"))
+    ov, wpv, tp, gr, ct = (R.get(k) for k in ("overhead", "wp_variator", "throughput", "gradients", "compile_time"))
     if ov:
         for r in ov["rhs_cost"]:
             if r["problem"] != "variator":
@@ -283,20 +295,17 @@ def targets(R) -> tuple[list, dict]:
             c = r["compile"]["cpu"]
             rows.append([f"5. first-call compile: {r['label']} (CPU; wall {r['compile']['wall']:.1f} s)", "≤ 1.5 s",
                          f"{c:.2f} s", "yes" if c <= 1.5 else f"no (+{(c / 1.5 - 1) * 100:.0f} %)"])
-    for wp in (wpv, wpg):
-        if not wp:
-            continue
-        for method in ("appell", "lagrange"):
-            for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
-                                ("default_solver(rtol)", default_key(wp["problem"], method))):
-                slow = default_slowdown(wp, pick, method)
-                if slow:
-                    v = list(slow.values())
-                    worst, mean = max(v), math.exp(sum(math.log(x) for x in v) / len(v))
-                    rows.append([f"6. {wp['problem']} {method}: {label} vs the fastest {method} solver at the same "
-                                 f"error, over rtol {max(slow):g} … {min(slow):g} (mean / worst)", "≈ 1×",
-                                 f"{fmt_x(mean)} / {fmt_x(worst)}",
-                                 "yes" if worst <= 1.15 else ("on average" if mean <= 1.15 else "no")])
+    for wp, method in wp_formulations(R):
+        for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
+                            ("default_solver(rtol)", default_key(wp["problem"], method))):
+            slow = default_slowdown(wp, pick, method)
+            if slow:
+                v = list(slow.values())
+                worst, mean = max(v), gmean(v)
+                rows.append([f"6. {wp['problem']} {method}: {label} vs the fastest {method} solver at the same "
+                             f"error, over rtol {max(slow):g} … {min(slow):g} (mean / worst)", "≈ 1×",
+                             f"{fmt_x(mean)} / {fmt_x(worst)}",
+                             "yes" if worst <= 1.15 else ("on average" if mean <= 1.15 else "no")])
     return rows, head
 
 
@@ -319,31 +328,25 @@ def default_slowdown(wp, pick, method: str = "appell") -> dict:
 
 def default_section(R) -> list:
     L = []
-    for k in ("wp_variator", "wp_generic"):
-        wp = R.get(k)
-        if not wp:
-            continue
+    for wp, method in wp_formulations(R):
         cv = _curves(wp)
-        for method in ("appell", "lagrange"):
-            if not any(n.startswith(method + "/") for n in cv):
+        today = default_slowdown(wp, lambda r: "Tsit5", method)
+        pick = default_key(wp["problem"], method)
+        prop = default_slowdown(wp, pick, method)
+        rows = []
+        for r in wp["tols"]:
+            pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items()
+                   if n.startswith(method + "/") and not n.endswith("Kvaerno5")}
+            mine = pts.get(f"{method}/{pick(r)}")
+            if mine is None:
                 continue
-            today = default_slowdown(wp, lambda r: "Tsit5", method)
-            pick = default_key(wp["problem"], method)
-            prop = default_slowdown(wp, pick, method)
-            rows = []
-            for r in wp["tols"]:
-                pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items()
-                       if n.startswith(method + "/") and not n.endswith("Kvaerno5")}
-                mine = pts.get(f"{method}/{pick(r)}")
-                if mine is None:
-                    continue
-                fastest = min(((n, time_at(cv, n, mine["error"])) for n in pts if pts[n] is not None),
-                              key=lambda x: x[1] if x[1] is not None else 1e9, default=(None, None))
-                rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
-                             (fastest[0] or "—").split("/")[-1]])
-            L += [f"**{wp['problem']}, {method}** (vector field: {operations(wp['problem'], method)} operations)", "",
-                  table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
-                         "diffrax Tsit5 (previous default) / fastest", f"fastest {method} solver"], rows), ""]
+            fastest = min(((n, time_at(cv, n, mine["error"])) for n in pts if pts[n] is not None),
+                          key=lambda x: x[1] if x[1] is not None else 1e9, default=(None, None))
+            rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
+                         (fastest[0] or "—").split("/")[-1]])
+        L += [f"**{wp['problem']}, {method}** (vector field: {operations(wp['problem'], method)} operations)", "",
+              table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
+                     "diffrax Tsit5 (previous default) / fastest", f"fastest {method} solver"], rows), ""]
     return L
 
 
@@ -356,15 +359,7 @@ def threshold_scan(R) -> tuple[list, dict]:
     worst over the sweep, for each (problem, formulation) the work-precision runs hold, grouped by the
     5th-order solver `default_solver` uses there (unrolled Tsit5u, or diffrax's looped Tsit5). Returns
     (header and table rows, {5th-order solver: {θ: geometric-mean slowdown over its group}})."""
-    cases = []
-    for k in ("wp_variator", "wp_generic"):
-        wp = R.get(k)
-        if not wp:
-            continue
-        cv = _curves(wp)
-        for method in ("appell", "lagrange"):
-            if any(n.startswith(method + "/") for n in cv):
-                cases.append((wp, method, default_key(wp["problem"], method)(1.0)))
+    cases = [(wp, method, default_key(wp["problem"], method)(1.0)) for wp, method in wp_formulations(R)]
     rows, score = [], {}
     current = {"Tsit5u": DOP853_BELOW_RTOL, "Tsit5": DOPRI8_BELOW_RTOL_LOOPED}
     for th in THRESHOLD_CANDIDATES:
@@ -377,7 +372,7 @@ def threshold_scan(R) -> tuple[list, dict]:
                 continue
             score.setdefault(low, {}).setdefault(th, []).extend(math.log(x) for x in v)
             mark = " ◀" if current.get(low) == th else ""
-            row += [f"{fmt_x(math.exp(sum(math.log(x) for x in v) / len(v)))} / {fmt_x(max(v))}{mark}"]
+            row += [f"{fmt_x(gmean(v))} / {fmt_x(max(v))}{mark}"]
         rows.append(row)
     header = ["θ"] + [f"{wp['problem']} {method} (above θ: {low})" for wp, method, low in cases]
     means = {low: {th: math.exp(sum(v) / len(v)) for th, v in d.items()} for low, d in score.items()}
