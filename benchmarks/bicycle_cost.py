@@ -19,7 +19,7 @@ compilation; the machine's load matters, so the script also prints CPU time):
    the matrices at 101 speeds in one vmapped call.
 2. jaxnh: a 5 s nonlinear simulation (Lagrange's equations with multipliers,
    8 coordinates, rtol 1e-8, the default solver — for this large vector field
-   diffrax's Dopri8, see `jaxnh.simulate.default_solver`), first call and the
+   diffrax's Dopri8, see `jaxnh._simulate.default_solver`), first call and the
    median of 5 repeats, with its error against a reference run at rtol 1e-12
    (not timed); and the same with diffrax's Tsit5, for comparison.
 3. SymPy (the `bench` extra; skipped if absent): the same model, coordinates

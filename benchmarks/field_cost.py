@@ -44,7 +44,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from jaxnh.simulate import formulation
+from jaxnh._simulate import formulation
 
 from . import problems as PB
 

@@ -10,7 +10,7 @@ parameters are J1, J2, M1, M2 and a Fourier ratio law U21(t) with K harmonics
 * forward: `jax.jacfwd` with `diffrax.ForwardMode()`;
 * forward sensitivities (`jaxnh.ForwardSensitivity`): `jax.grad` through an
   augmented solve of the state and its P sensitivity columns;
-* auto: what `simulate(adjoint=None)` picks (`jaxnh.sensitivity.auto_adjoint`):
+* auto: what `simulate(adjoint=None)` picks (`jaxnh._sensitivity.auto_adjoint`):
   `ForwardSensitivity` up to `FORWARD_MAX_PARAMETERS` scalars in
   (params, q0, qd0), reverse mode above. Its ratio is that of the mode it
   picks (the same compiled function).
@@ -36,8 +36,8 @@ import numpy as np
 
 import jaxnh as nh
 from jaxnh.models import variator as V
-from jaxnh.simulate import default_solver
-from jaxnh.sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
+from jaxnh._simulate import default_solver
+from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
 
 RTOL, ATOL = 1e-8, 1e-10
 
@@ -123,7 +123,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="P = 7 only; no jacfwd/backsolve")
     ap.add_argument("--solver", default="default", choices=["default"] + sorted(C.SOLVERS),
-                    help="default: what simulate picks at rtol 1e-8 (jaxnh.simulate.default_solver)")
+                    help="default: what simulate picks at rtol 1e-8 (jaxnh._simulate.default_solver)")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     out = run(a.quick, C.solver_key(default_solver(RTOL)) if a.solver == "default" else a.solver)

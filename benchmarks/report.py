@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxnh.simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
+from jaxnh._simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
 
 _OPS: dict = {}
 
@@ -446,13 +446,13 @@ def build(R) -> tuple[str, dict]:
          "measured waiting for a core (a 3.5 ms solve took 3.3–20 ms of wall time, 3.3–3.7 ms of CPU time). "
          "Ratios are medians of per-round ratios of contenders timed in the same round. Compile times are "
          "`jit(...).lower(...).compile()`, CPU and wall; first-call times come from fresh processes.",
-         "* \"Compiled solve\" is `simulate`'s jitted inner function `jaxnh.simulate._integrate` with the "
+         "* \"Compiled solve\" is `simulate`'s jitted inner function `jaxnh._simulate._integrate` with the "
          "tolerances traced (one compilation per contender); \"through simulate\" is a plain `nh.simulate(...)` "
          "call, whose argument checks run in Python on every call.", ""]
     rows, head = targets(R)
     L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
     if R.get("wp_variator") or R.get("wp_generic"):
-        L += ["## Default solver", "", "`jaxnh.simulate.default_solver(rtol, operations, method)`: for a vector "
+        L += ["## Default solver", "", "`jaxnh._simulate.default_solver(rtol, operations, method)`: for a vector "
               f"field of at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations in the appell "
               "(or substituted) form, jaxnh's unrolled Tsit5 (Tsit5u), and diffrax Dopri8 for rtol < "
               f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; for larger vector fields and for lagrange, diffrax's "

@@ -91,7 +91,7 @@ def best_of(fn, repeats):
 def bench_batches(sizes, loop_n, repeats, with_vmap=True):
     import jax
 
-    from jaxnh.sweep import sweep
+    from jaxnh._sweep import sweep
 
     make_params, case = jax_case()
     rows = []
@@ -191,7 +191,7 @@ def scaling_worker(B, chunk, repeats):
     """Run in a subprocess: time one sweep of B cases on all local devices."""
     import jax
 
-    from jaxnh.sweep import sweep
+    from jaxnh._sweep import sweep
 
     make_params, case = jax_case()
     J2, amp = draw(B)
@@ -230,7 +230,7 @@ def bench_devices(B, chunk, repeats):
 def bench_chunks(B, chunks, repeats):
     import jax
 
-    from jaxnh.sweep import sweep
+    from jaxnh._sweep import sweep
 
     make_params, case = jax_case()
     J2, amp = draw(B)

@@ -30,7 +30,7 @@ import numpy as np
 
 import jaxnh  # noqa: F401  (64-bit mode)
 from jaxnh.models import bicycle
-from jaxnh.sweep import sweep
+from jaxnh._sweep import sweep
 
 P0 = bicycle.default_params()
 CHUNK = 512

@@ -33,7 +33,7 @@ import numpy as np
 import jaxnh as nh
 from jaxnh.models import variator
 from jaxnh.profiles import Fourier
-from jaxnh.sweep import sweep
+from jaxnh._sweep import sweep
 
 MECH = variator.mechanism()
 T_END = 6.0

@@ -19,21 +19,21 @@ import jax
 if os.environ.get("JAXNH_X64", "1") != "0":
     jax.config.update("jax_enable_x64", True)
 
-from . import holonomic, linalg, models, profiles, rigid  # noqa: E402
-from .consistent import consistent_velocities  # noqa: E402
+from . import linalg, models, profiles, rigid  # noqa: E402
+from ._consistent import consistent_velocities  # noqa: E402
 from .equations import METHODS, accelerations, choose_independent  # noqa: E402
-from .holonomic import HolonomicMechanism  # noqa: E402
-from .linearize import Linearization, linearize  # noqa: E402
-from .mechanism import Mechanism  # noqa: E402
-from .sensitivity import ForwardSensitivity  # noqa: E402
-from .simulate import RECORDABLE, STABILIZATIONS, STATUS, Solution, simulate  # noqa: E402
-from . import design, identify, sensitivity, solvers  # noqa: E402
+from ._holonomic import HolonomicMechanism  # noqa: E402
+from ._linearize import Linearization, linearize  # noqa: E402
+from ._mechanism import Mechanism  # noqa: E402
+from ._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
+from ._simulate import RECORDABLE, STABILIZATIONS, STATUS, Solution, default_solver, simulate  # noqa: E402
+from . import design, identify, solvers  # noqa: E402
 from .identify import fit  # noqa: E402
-from .sweep import sweep  # noqa: E402
+from ._sweep import sweep  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Mechanism", "ForwardSensitivity", "HolonomicMechanism", "Linearization", "linearize", "holonomic", "rigid", "Solution", "accelerations", "choose_independent", "consistent_velocities",
-    "simulate", "fit", "sweep", "design", "identify", "sensitivity", "solvers", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
+    "Mechanism", "ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "HolonomicMechanism", "Linearization", "linearize", "rigid", "Solution", "accelerations", "choose_independent", "consistent_velocities",
+    "simulate", "fit", "sweep", "design", "identify", "solvers", "default_solver", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
 ]

@@ -13,7 +13,7 @@ import numpy as np
 from .equations import accelerations
 from .models import variator as V
 from .profiles import Constant, Fourier
-from .simulate import simulate
+from ._simulate import simulate
 
 METHODS = ("lagrange", "appell", "substituted")
 

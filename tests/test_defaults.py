@@ -12,8 +12,8 @@ import pytest
 import jaxnh as nh
 from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
-from jaxnh.sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
-from jaxnh.simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
+from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
+from jaxnh._simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
 from jaxnh.solvers import Tsit5
 
 MECH = V.mechanism()
@@ -55,7 +55,7 @@ def test_vector_field_size_is_counted_under_jit():
 def test_vector_field_size_is_remembered_per_structure():
     """simulate(solver=None) counts on every call; the count is cached by the structure,
     shapes and dtypes (not the values), and a different formulation is counted anew."""
-    from jaxnh.simulate import _OPERATIONS_CACHE
+    from jaxnh._simulate import _OPERATIONS_CACHE
 
     form = nh.equations.formulation(MECH, "appell", Q0, qd0(P), 0.0, P, (0,))
     y0 = form.state(Q0, qd0(P), 0.0, P)

@@ -21,7 +21,7 @@ import pytest
 import jaxnh as nh
 from jaxnh.identify import Record, fit, load_default, noise_level, read_csv, statistics, write_csv
 from jaxnh.identify.diagnostics import analyse
-from jaxnh.identify.fit import GN_STEP_TOL, fit_solver
+from jaxnh.identify._fit import GN_STEP_TOL, fit_solver
 from jaxnh.identify.parameters import Parametrisation
 from jaxnh.identify.variator import FREE, fit_variator, params_for, ratio_knots
 from jaxnh.models import variator as V

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh.linearize import linearize
+from jaxnh._linearize import linearize
 
 G, L = 9.81, 0.7
 

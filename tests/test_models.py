@@ -17,7 +17,7 @@ import scipy.optimize
 import scipy.special
 
 import jaxnh as nh
-from jaxnh.holonomic import HolonomicMechanism
+from jaxnh._holonomic import HolonomicMechanism
 from jaxnh.models import disc as D
 from jaxnh.models import knife_edge as K
 from jaxnh.models import sleigh as S

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnh.linearize import lagrange_expression
-from jaxnh.mechanism import Mechanism
+from jaxnh._linearize import lagrange_expression
+from jaxnh._mechanism import Mechanism
 from jaxnh.models import disc as D
 from jaxnh.rigid import RigidBodies, Wheel, rot_axis, rot_x, rot_y, rot_z, skew, vee
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 from .appell import Appell
 from .base import Formulation, as_float, as_time, multipliers_from_accelerations
 from .lagrange import Lagrange

@@ -8,7 +8,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..linalg import mm, solve_psd_min_norm
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 from .terms import constraint_terms, mass_and_velocity_terms
 
 

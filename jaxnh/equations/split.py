@@ -20,7 +20,7 @@ import numpy as np
 import scipy.linalg
 
 from ..linalg import solve_square
-from ..mechanism import Mechanism, check_independent
+from .._mechanism import Mechanism, check_independent
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
 

@@ -17,7 +17,7 @@
 from . import variator
 from .data import MIN_SAMPLES, Record, load_default, noise_level, read_csv, write_csv
 from .diagnostics import Identifiability
-from .fit import FitResult, fit, prepare
+from ._fit import FitResult, fit, prepare
 from .problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
 
 __all__ = [

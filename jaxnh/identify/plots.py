@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fit import FitResult
+from ._fit import FitResult
 
 __all__ = ["plot_fit", "plot_ratio"]
 

@@ -12,7 +12,7 @@ Unknowns θ = [free parameters | initial state | segment states]:
 Residuals are `(q_sim − y) / sigma` for every observed channel and sample,
 plus, with multiple shooting, the continuity defects between segments.
 Their Jacobian comes from forward sensitivities integrated with the state
-(`jaxnh.sensitivity.ForwardSensitivity`: one solve of the state and one
+(`jaxnh._sensitivity.ForwardSensitivity`: one solve of the state and one
 sensitivity column per unknown), wrapped in a `jax.custom_jvp` so that any
 consumer (optimistix's Levenberg–Marquardt, `jax.grad` for optax) gets it
 from one `jax.jacfwd` pass: with tens of unknowns and thousands of residuals
@@ -34,9 +34,9 @@ import numpy as np
 import optimistix as optx
 
 from ..equations.split import VelocitySplit
-from ..mechanism import Mechanism
-from ..sensitivity import ForwardSensitivity
-from ..simulate import simulate
+from .._mechanism import Mechanism
+from .._sensitivity import ForwardSensitivity
+from .._simulate import simulate
 from .parameters import Parametrisation
 
 __all__ = ["Observations", "Problem", "LevenbergMarquardt", "solve_least_squares", "column_scale", "value_and_jacobian", "statistics"]
@@ -74,7 +74,7 @@ class Problem(eqx.Module):
         length: samples per segment (static).
         method, solver, rtol, atol, max_steps: passed to `simulate`.
         differentiation: "forward" (Jacobian by `jax.jacfwd` with
-            `jaxnh.sensitivity.ForwardSensitivity`) or "reverse"
+            `jaxnh._sensitivity.ForwardSensitivity`) or "reverse"
             (`RecursiveCheckpointAdjoint`; for gradients of a scalar loss
             with many unknowns).
     """

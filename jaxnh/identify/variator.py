@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from ..models import variator as V
 from ..profiles import CubicSpline, Sampled
 from .data import Record
-from .fit import FitResult, fit
+from ._fit import FitResult, fit
 
 __all__ = ["FREE", "DEFAULT_KNOTS", "params_for", "ratio_knots", "starting_guess", "fit_variator", "report"]
 

@@ -40,8 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 
-from ..holonomic import HolonomicMechanism
-from ..linearize import linearize
+from .._holonomic import HolonomicMechanism
+from .._linearize import linearize
 from ..rigid import RigidBodies, Wheel, rot_axis, rot_x, rot_y, rot_z
 
 __all__ = [

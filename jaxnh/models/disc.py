@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..linearize import linearize
-from ..mechanism import Mechanism
+from .._linearize import linearize
+from .._mechanism import Mechanism
 from ..rigid import RigidBodies, Wheel, rot_x, rot_y, rot_z
 
 __all__ = [

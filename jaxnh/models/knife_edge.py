@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 
 __all__ = ["mechanism", "default_params", "closed_form", "kinetic", "potential", "constraint"]
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 from ..rigid import RigidBodies, rot_z
 
 __all__ = ["bodies", "mechanism", "default_params", "closed_form", "forward_speed", "initial_velocities"]

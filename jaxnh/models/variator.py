@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 from ..profiles import Constant, Fourier, Profile
 
 __all__ = [

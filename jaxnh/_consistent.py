@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from .equations.base import as_float, as_time
 from .equations.terms import constraint_terms, mass_and_velocity_terms
 from .linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
-from .mechanism import Mechanism
+from ._mechanism import Mechanism
 
 __all__ = ["consistent_velocities"]
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..equations.split import choose_independent
-from ..mechanism import Mechanism
+from .._mechanism import Mechanism
 from .data import Record, noise_level
 from .diagnostics import Identifiability, LackOfFit, analyse, lack_of_fit
 from .parameters import Parametrisation, resolve
@@ -339,7 +339,7 @@ def fit_solver(solver, params, rtol: float):
     if solver is not None:
         return solver
     from ..profiles import Sampled
-    from ..simulate import DOP853_BELOW_RTOL
+    from .._simulate import DOP853_BELOW_RTOL
 
     sampled = any(isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(
         params, is_leaf=lambda x: isinstance(x, Sampled)))

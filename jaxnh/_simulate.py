@@ -14,11 +14,11 @@ from jaxtyping import Array, Float
 from .equations import METHODS, formulation
 from .equations.base import as_float
 from .equations.lagrange import Lagrange
-from .consistent import consistent_velocities
-from .mechanism import Mechanism
-from .sensitivity import ForwardSensitivity, auto_adjoint, solve_at, solve_forward_sensitivity
+from ._consistent import consistent_velocities
+from ._mechanism import Mechanism
+from ._sensitivity import ForwardSensitivity, auto_adjoint, solve_at, solve_forward_sensitivity
 from .solvers import Tsit5
-from .stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
+from ._stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
 __all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
            "DOPRI8_BELOW_RTOL_LOOPED", "UNROLL_MAX_OPERATIONS", "vector_field_operations"]
@@ -275,7 +275,7 @@ def simulate(
             `jaxnh.ForwardSensitivity()` — the sensitivities integrated with
             the state, one augmented solve whatever the mode (`jax.grad`,
             `jax.jacfwd`, `jax.jvp`) — when (params, q0, qd0) hold at most
-            `jaxnh.sensitivity.FORWARD_MAX_PARAMETERS` float scalars, else
+            `jaxnh._sensitivity.FORWARD_MAX_PARAMETERS` float scalars, else
             `diffrax.RecursiveCheckpointAdjoint()` (reverse mode only: use
             `ForwardSensitivity()` explicitly with `jax.jacfwd` then). Any
             diffrax adjoint may be passed.

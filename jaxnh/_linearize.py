@@ -45,7 +45,7 @@ from jaxtyping import Array, Float
 from .equations.base import as_float, as_time
 from .equations.split import VelocitySplit, check_split, choose_independent, pick, solve_square
 from .linalg import mm, solve_spd
-from .mechanism import Mechanism, check_independent
+from ._mechanism import Mechanism, check_independent
 
 __all__ = ["Linearization", "linearize"]
 

@@ -38,7 +38,7 @@ import jax
 import jax.flatten_util
 import jax.numpy as jnp
 
-from .consistent import consistent_velocities
+from ._consistent import consistent_velocities
 from .solvers import DOP853, Tsit5
 
 __all__ = ["ProjectedSolver", "VelocityProjection", "ParamsOf", "default_baumgarte_rate"]

@@ -34,7 +34,7 @@ from jax.custom_derivatives import SymbolicZero
 
 from .equations.base import as_float, as_time
 from .equations.split import VelocitySplit, choose_independent, pick, solve_square
-from .mechanism import Mechanism, check_independent
+from ._mechanism import Mechanism, check_independent
 
 __all__ = ["HolonomicMechanism"]
 
@@ -376,7 +376,7 @@ class HolonomicMechanism(eqx.Module):
         the mechanism integrated (for "lagrange" the last h entries belong
         to ġ = 0).
         """
-        from .simulate import simulate
+        from ._simulate import simulate
 
         independent = kwargs.pop("independent", None)
         q0, qd0 = self.initial_state(q0, qd0, ts[0], params, independent)
