@@ -1,20 +1,33 @@
-# make demo  — set up .venv (if missing) and run the main job on the embedded data
-# make test  — set up .venv (if missing) and run the test suite
-# make bench — set up .venv and regenerate benchmarks/RESULTS.md and figures (20–60 min, by load)
+# make demo       — set up .venv (if missing) and run the main job on the embedded default data
+# make test       — set up .venv (if missing) and run the whole test suite
+# make test-quick — the quick tier: every test not marked slow
+# make test-min   — a separate .venv-min with the oldest declared dependency versions; runs the quick tier
+# make docs       — build the documentation site into site/ (examples executed; strict: warnings fail)
+# make docs-serve — the same, served with live reload at http://127.0.0.1:8000
+# make lint       — ruff check, ruff format --check, pyright
+# make bench      — regenerate benchmarks/RESULTS.md and figures (20–60 min, by load)
 # make bench-quick — the short suite (a few minutes), written to benchmarks/quick/
 
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+MIN_VENV := .venv-min
 
-.PHONY: demo test bench bench-quick clean
+.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick clean
 
-$(STAMP): pyproject.toml
+$(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test,bench]"
-	touch $(STAMP)
+	touch $@
+
+$(STAMP): pyproject.toml $(VENV)/.created
+	$(PY) -m pip install --quiet -e ".[test,plot]"
+	touch $@
+
+$(VENV)/.installed-%: pyproject.toml $(STAMP)
+	$(PY) -m pip install --quiet -e ".[$*]"
+	touch $@
 
 demo: $(STAMP)
 	$(VENV)/bin/jaxnh demo
@@ -22,11 +35,34 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest tests
 
-bench: $(STAMP)
+test-quick: $(STAMP)
+	$(PY) -m pytest tests -m "not slow"
+
+test-min:
+	test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
+	$(MIN_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(PYTHON) .ci/min_pins.py > $(MIN_VENV)/pins.txt
+	$(MIN_VENV)/bin/python -m pip install --quiet -r $(MIN_VENV)/pins.txt
+	$(MIN_VENV)/bin/python -m pip install --quiet -c $(MIN_VENV)/pins.txt -e ".[test]"
+	$(MIN_VENV)/bin/python -m pip list --format=freeze | grep -iE '^(jax|jaxlib|diffrax|equinox|optax|optimistix|jaxtyping|numpy|scipy|matplotlib)=='
+	$(MIN_VENV)/bin/python -m pytest tests -m "not slow"
+
+docs: $(VENV)/.installed-docs
+	$(VENV)/bin/mkdocs build --strict
+
+docs-serve: $(VENV)/.installed-docs
+	$(VENV)/bin/mkdocs serve
+
+lint: $(VENV)/.installed-dev
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/pyright
+
+bench: $(VENV)/.installed-bench
 	$(PY) -m benchmarks.run_all
 
-bench-quick: $(STAMP)
+bench-quick: $(VENV)/.installed-bench
 	JAXNH_BENCH_OUT=benchmarks/quick $(PY) -m benchmarks.run_all --quick
 
 clean:
-	rm -rf $(VENV) jaxnh_out .pytest_cache benchmarks/quick
+	rm -rf $(VENV) $(MIN_VENV) site jaxnh_out .pytest_cache benchmarks/quick
