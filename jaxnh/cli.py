@@ -1,58 +1,100 @@
-"""The `jaxnh` command line: `jaxnh demo`, `jaxnh fit`."""
+"""The `jaxnh` command line: `jaxnh demo`, `jaxnh fit`.
+
+    jaxnh demo [--out DIR] [--no-fit]
+    jaxnh fit [DATA.csv] [--model variator | module:function] [--json OUT.json] [--out DIR] ...
+
+`jaxnh fit --help` describes the fit's options, the CSV format and the
+`--model module:function` contract (`jaxnh.identify.cli`).
+
+Exit status (both commands):
+    0  success (`fit`: fitted — converged, every parameter determined, every
+       number finite);
+    1  the fit failed (not converged, not identifiable, simulation failed or
+       non-finite numbers; results are still written with a "status" saying why);
+    2  bad input or arguments (a message on stderr, no traceback; nothing is written).
+
+Output files are written whole or not at all (a temporary file in the same
+folder, renamed when complete). Figures are drawn with matplotlib's Agg
+backend, chosen here for the command line only (the library never changes
+the backend). Compiled programs are kept in JAX's persistent compilation
+cache (`jaxnh._cache`: `~/.cache/jaxnh`, `JAXNH_CACHE_DIR=off` disables it).
+"""
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
+EPILOG = """\
+exit status: 0 success (fit: fitted); 1 the fit failed (results written with a failure
+status); 2 bad input (a message says what is wrong; nothing written).
+compiled programs are cached in ~/.cache/jaxnh ($JAXNH_CACHE_DIR; JAXNH_CACHE_DIR=off disables).
+"""
 
-def use_compilation_cache() -> str | None:
-    """Keep compiled XLA programs on disk between runs of the command line.
 
-    The first `jaxnh fit` or `jaxnh demo` in a fresh process spends most of its
-    time tracing and compiling (benchmarks/FIT_COST.md); JAX's persistent
-    compilation cache lets later runs load the compiled programs instead (measured:
-    `jaxnh fit` on the embedded record 24.6 s, then 20.2 s with a warm cache; the
-    rest is Python tracing, which no cache saves). Folder: `$JAXNH_CACHE_DIR`, else
-    `$XDG_CACHE_HOME/jaxnh` or `~/.cache/jaxnh`; `JAXNH_CACHE_DIR=off` disables
-    it. Only the command line turns it on: importing the library changes no
-    cache setting. Returns the folder, or None when disabled or unusable.
-    """
-    path = os.environ.get("JAXNH_CACHE_DIR")
-    if path is not None and path.strip().lower() in ("", "0", "off", "none"):
-        return None
-    if path is None:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        path = os.path.join(base, "jaxnh")
+def _use_agg() -> None:
+    """Figures of the command line go to files: the Agg backend, unless pyplot is already in use."""
+    if "matplotlib.pyplot" in sys.modules:
+        return
     try:
-        os.makedirs(path, exist_ok=True)
-    except OSError:
-        return None
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    return path
+        import matplotlib
+    except ImportError:
+        return
+    matplotlib.use("Agg")
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="jaxnh", description="Mechanisms with nonholonomic constraints in JAX")
+    """Run `jaxnh` with `argv` (default: sys.argv[1:]); returns the exit status (0, 1 or 2)."""
+    parser = argparse.ArgumentParser(prog="jaxnh", description="Mechanisms with nonholonomic constraints in JAX",
+                                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="the variator derived three ways, simulated, checked (and fitted)")
-    demo.add_argument("--out", default="jaxnh_out", help="folder for the figures (default: jaxnh_out)")
+    demo = sub.add_parser("demo", help="the variator derived three ways, simulated, checked (and fitted)",
+                          epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    demo.add_argument("--out", default="jaxnh_out", help="folder for the figures and fit.json (default: jaxnh_out)")
     demo.add_argument("--no-fit", action="store_true", help="skip the parameter fit")
     from .identify.cli import add_fit_parser, run_fit
 
     add_fit_parser(sub)
-    args = parser.parse_args(argv)
-    use_compilation_cache()
-    if args.command == "demo":
-        from .demo import run
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help (0) or an argument error (2, message already printed)
+        return int(e.code) if isinstance(e.code, int) else (0 if e.code is None else 2)
+    from ._cache import setup_compilation_cache
 
-        run(args.out, fit=not args.no_fit)
-        return 0
+    setup_compilation_cache()  # idempotent; also done by `import jaxnh`
+    _use_agg()
+    if args.command == "demo":
+        return _demo(args)
     return run_fit(args)
+
+
+def _demo(args) -> int:
+    from ._atomic import check_writable_dir
+
+    why = check_writable_dir(args.out, "--out")
+    if why:
+        print(f"jaxnh demo: {why}", file=sys.stderr)
+        return 2
+    try:
+        import matplotlib  # noqa: F401
+
+        figures = True
+    except ImportError:
+        figures = False
+        print("jaxnh demo: matplotlib is not installed: no figures (pip install matplotlib, or jaxnh[plot])",
+              file=sys.stderr)
+    from .demo import run
+
+    try:
+        report = run(args.out, fit=not args.no_fit, figures=figures)
+    except KeyboardInterrupt:
+        print("\njaxnh demo: interrupted", file=sys.stderr)
+        return 130
+    fit = report.get("fit")
+    if fit is not None and fit.get("status") != "fitted":
+        print(f"jaxnh demo: the fit's status is {fit.get('status')!r} (exit status 1)", file=sys.stderr)
+        return 1
+    return 0
 
 
 if __name__ == "__main__":

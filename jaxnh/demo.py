@@ -15,6 +15,8 @@ from .models import variator as V
 from .profiles import Constant, Fourier
 from ._simulate import simulate
 
+__all__ = ["run", "equation_coefficients", "plot_methods", "METHODS"]
+
 METHODS = ("lagrange", "appell", "substituted")
 
 
@@ -39,8 +41,9 @@ def equation_coefficients(method: str, p: V.VariatorParams, w: float, t: float):
     return float(I), float(C), float(F)
 
 
-def run(out_dir: str = "jaxnh_out", fit: bool = True) -> dict:
-    """Run the demo, print the report, write figures into `out_dir`; return the numbers."""
+def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> dict:
+    """Run the demo, print the report, write figures (with `figures`, which
+    needs matplotlib) and the fit's `fit.json` into `out_dir`; return the numbers."""
     os.makedirs(out_dir, exist_ok=True)
     report = {}
     p = V.default_params()
@@ -98,28 +101,56 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True) -> dict:
         report[f"energy_drift_{m}"] = drift
         print(f"   {m:<12} max |T − T0| / T0 = {drift:9.2e}")
 
-    fig_path = os.path.join(out_dir, "variator_methods.png")
-    _plot(ts, q_ref, qd_ref, sols, tf, energies, fig_path)
-    print(f"\n   figure: {fig_path}")
-    report["figure"] = fig_path
+    if figures:
+        fig_path = os.path.join(out_dir, "variator_methods.png")
+        _save(plot_methods(ts, q_ref, qd_ref, sols, tf, energies), fig_path)
+        print(f"\n   figure: {fig_path}")
+        report["figure"] = fig_path
     if fit:
         try:
-            from .identify.cli import demo_fit  # added by the identification work
+            from .identify.cli import demo_fit
         except ImportError:
             demo_fit = None
         if demo_fit is not None:
-            report["fit"] = demo_fit(out_dir)
+            report["fit"] = demo_fit(out_dir, figures=figures)
     return report
 
 
-def _plot(ts, q_ref, qd_ref, sols, tf, energies, path):
-    import matplotlib
+def _save(fig, path: str) -> str:
+    """Write `fig` to `path` (through a temporary file, renamed when complete) and close it."""
+    from ._atomic import atomic_save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    try:
+        return atomic_save_figure(fig, path, dpi=110)
+    finally:
+        import matplotlib.pyplot as plt
 
+        plt.close(fig)
+
+
+def plot_methods(ts, q_ref, qd_ref, sols, tf, energies, *, fig=None):
+    """The demo's figure: input shaft speed by each method against the closed
+    form (rad/s), the error against the closed form (rad), and T/T(0) with
+    the torques off.
+
+    Arguments:
+        ts: report times (n,), s; q_ref, qd_ref: the closed form (n, 2).
+        sols: {method: Solution} at ts; tf, energies: times (s) and
+            {method: energy (J)} of the torque-free runs.
+        fig: a matplotlib Figure to draw into (cleared); default a new one
+            from `matplotlib.pyplot`. The backend is never changed.
+
+    Returns:
+        The matplotlib Figure.
+    """
+    if fig is None:
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    else:
+        fig.clear()
+        ax = fig.subplots(1, 3)
     colors = {"lagrange": "C0", "appell": "C2", "substituted": "C3"}
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
     ax[0].plot(ts, qd_ref[:, 0], "k-", lw=3, alpha=0.3, label="closed form")
     for m, sol in sols.items():
         ax[0].plot(ts, sol.qd[:, 0], "--" if m != "substituted" else "-", color=colors[m], label=m)
@@ -136,5 +167,4 @@ def _plot(ts, q_ref, qd_ref, sols, tf, energies, path):
     ax[2].set(xlabel="t [s]", ylabel="T / T(0)", title="kinetic energy, M1 = M2 = 0 (first 10 periods)")
     ax[2].legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig

@@ -139,6 +139,35 @@ class FitResult:
         """Value and standard error of the free profile `name` (e.g. "U21") at times ts."""
         return self.band(_ProfileAt(name), ts)
 
+    def to_dict(self, arrays: bool = False) -> dict:
+        """The result as plain Python data, ready for `json.dump` (any mechanism).
+
+        Non-finite numbers (an undetermined standard error, a failed
+        simulation) become None (JSON null), and "status" then says why the
+        fit is not usable. Keys: "status" ("fitted", "not_converged",
+        "not_identifiable", "simulation_failed" or "non_finite"), "ok",
+        "parameters" ({name: {"value", "std"}}, lists for profiles),
+        "initial_state", "labels"/"values"/"std"/"covariance" (flat),
+        "q0", "qd0", residual statistics, "lack_of_fit", "identifiability",
+        "converged", "iterations", "message", and how it was done. With
+        `arrays=True` also "t", "measured", "fitted", "residuals".
+        See `jaxnh._dataframe.fit_result_to_dict`.
+        """
+        from .._dataframe import fit_result_to_dict
+
+        return fit_result_to_dict(self, arrays=arrays)
+
+    def __repr__(self) -> str:
+        status = "converged" if self.converged else "NOT converged"
+        ident = "identifiable" if self.identifiable else "NOT identifiable"
+        est = ", ".join(f"{lab}={v:.6g}" for lab, v in list(zip(self.labels, self.values))[:6])
+        more = f", … ({len(self.labels)} unknowns)" if len(self.labels) > 6 else ""
+        return (f"FitResult({status}, {ident}, {self.iterations} iterations, rms residual "
+                f"{self.rms_residual:.4g}; {est}{more}; .summary() for the table, .to_dict() for all values)")
+
+    def __str__(self) -> str:
+        return self.summary()
+
     def summary(self) -> str:
         """A table of estimates ± standard errors and the residual statistics."""
         lines = [f"{'parameter':<16}{'estimate':>14}{'std error':>12}{'rel.':>9}"]
@@ -318,7 +347,8 @@ def _noise(noise, observe, y):
     else:
         sigma = np.broadcast_to(np.asarray(noise, dtype=float), (len(observe),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
-        raise ValueError(f"noise: standard deviations must be finite and > 0; got {dict(zip(observe, sigma))}")
+        raise ValueError(f"noise: standard deviations must be finite and > 0; got "
+                         f"{ {c: float(x) for c, x in zip(observe, sigma)} }")
     return sigma
 
 
@@ -388,8 +418,8 @@ def fit(
         observe: coordinate names to fit (default: every coordinate the record
             has), e.g. `("phi1",)` for one encoder.
         noise: measurement standard deviation per channel (a dict by name, or
-            one number), units of the channel; default: estimated from the
-            data (`noise_level`). The covariance is scaled by the residual
+            one number), units of the channel; default: the record's `sigma`
+            when it has one, else estimated from the data (`noise_level`). The covariance is scaled by the residual
             variance either way.
         q0, qd0: starting guesses of the initial coordinates and velocities
             (s,). The initial positions of observed coordinates and the
@@ -423,6 +453,8 @@ def fit(
         A `FitResult`.
     """
     started = time.perf_counter()
+    if noise is None and getattr(data, "sigma", None):
+        noise = dict(data.sigma)  # the record's own noise levels (Record.sigma)
     lm = isinstance(optimizer, str)
     if lm and optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {optimizer!r}")

@@ -134,50 +134,38 @@ def fit_variator(record: Record, *, knots=DEFAULT_KNOTS, J1=None, J2=None, U21=N
 
 
 def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
-    """The fit as a JSON-ready dict.
+    """The fit as a JSON-ready dict: `result.to_dict()` plus the variator's own keys.
 
-    Keys: "J1", "J2" ({"value", "std"}, kg·m²), "U21" ({"t", "value", "std"} on a
-    uniform grid of `n_grid` times over the record), "rms_residual" (rad),
-    "iterations", "converged", and further "relative_std", "U21_knots",
-    "initial_state", "rms_by_channel", "noise", "chi2_dof", "lack_of_fit" (is the
-    misfit significantly above the noise, and the model error relative to it), "identifiable",
-    "messages", "message", "observe", "data", "elapsed_s".
+    Every number is a finite float or None (JSON null): an undetermined
+    standard error or a non-finite value is None, and then "status" (from
+    `to_dict`) is not "fitted". Variator keys: "J1", "J2" ({"value", "std"},
+    kg·m²), "U21" ({"t", "value", "std"} on a uniform grid of `n_grid` times
+    over the record), "relative_std", "U21_knots", "data", "units"; and from
+    `to_dict`: "status", "ok", "rms_residual" (rad), "iterations",
+    "converged", "initial_state", "rms_by_channel", "noise", "chi2_dof",
+    "lack_of_fit" (is the misfit significantly above the noise, and the
+    model error relative to it), "identifiable", "message", "observe",
+    "elapsed_s", "parameters", "identifiability", ...
     """
+    from .._dataframe import json_safe
+
     ts = np.linspace(result.t[0], result.t[-1], n_grid)
     u, us = result.profile_band("U21", ts)
     est = result.estimates
-
-    def num(x):
-        x = float(x)
-        return x if np.isfinite(x) else None  # JSON has no inf: undetermined → null
-
+    out = result.to_dict()
     knots = np.asarray(result.params.U21.knots)
-    out = {
-        "J1": {"value": num(est["J1"]["value"]), "std": num(est["J1"]["std"])},
-        "J2": {"value": num(est["J2"]["value"]), "std": num(est["J2"]["std"])},
-        "U21": {"t": ts.tolist(), "value": u.tolist(), "std": [num(x) for x in us]},
-        "rms_residual": result.rms_residual,
-        "iterations": result.iterations,
-        "converged": result.converged,
-        "relative_std": {k: num(est[k]["std"] / est[k]["value"]) for k in ("J1", "J2")},
-        "U21_knots": {"t": knots.tolist(), "value": np.asarray(est["U21"]["value"]).tolist(),
-                      "std": [num(x) for x in np.asarray(est["U21"]["std"])]},
-        "initial_state": {k: {"value": num(v["value"]), "std": num(v["std"])} for k, v in est.items()
-                          if k not in ("J1", "J2", "U21")},
-        "rms_by_channel": result.rms_by_channel,
-        "noise": result.noise,
-        "chi2_dof": result.chi2_dof,
-        "lack_of_fit": {"significant": result.lack_of_fit.significant, "s2_threshold": result.lack_of_fit.threshold,
-                        "model_error_over_noise": result.lack_of_fit.model_error_over_noise,
-                        "model_error_rms": result.lack_of_fit.model_error_rms,
-                        "residual_autocorrelation": result.lack_of_fit.autocorrelation,
-                        "message": result.lack_of_fit.message},
-        "identifiable": result.identifiable,
-        "messages": result.identifiability.messages,
-        "message": result.message,
-        "observe": list(result.observe),
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = {k: np.float64(est[k]["std"]) / np.float64(est[k]["value"]) for k in ("J1", "J2")}
+    out.update({
+        "J1": {"value": est["J1"]["value"], "std": est["J1"]["std"]},
+        "J2": {"value": est["J2"]["value"], "std": est["J2"]["std"]},
+        "U21": {"t": ts, "value": u, "std": us},
+        "relative_std": rel,
+        "U21_knots": {"t": knots, "value": est["U21"]["value"], "std": est["U21"]["std"]},
+        "messages": list(result.identifiability.messages),
         "data": source,
-        "elapsed_s": result.elapsed,
         "units": {"J1": "kg m^2", "J2": "kg m^2", "U21": "1", "rms_residual": "rad", "t": "s"},
-    }
-    return out
+    })
+    if out["status"] == "fitted" and not all(np.all(np.isfinite(np.asarray(x, dtype=float))) for x in (u, us)):
+        out["status"], out["ok"] = "non_finite", False
+    return json_safe(out)

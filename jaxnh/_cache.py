@@ -1,0 +1,171 @@
+"""JAX's persistent compilation cache, on by default, in a folder only the user can write.
+
+Compiling jaxnh's programs (a simulation, a fit's Jacobian) takes seconds;
+JAX can keep the compiled programs on disk and load them in later processes.
+`setup_compilation_cache()` (called when `jaxnh` is imported) points JAX's
+cache at
+
+* `$JAXNH_CACHE_DIR` when set (`JAXNH_CACHE_DIR=off`, `0`, `none` or empty
+  disables the cache),
+* else `$XDG_CACHE_HOME/jaxnh`,
+* else `~/.cache/jaxnh`,
+
+unless the user has configured JAX's cache themselves
+(`jax_compilation_cache_dir`, e.g. through `JAX_COMPILATION_CACHE_DIR`, or
+`jax_enable_compilation_cache=False`): then nothing is changed.
+
+Safety. A compilation cache holds native code that JAX loads and runs, so
+anyone who can write into the folder can run code as the user (JAX's own
+documentation says so for `set_cache_dir`). The folder is therefore created
+with mode 0700, and an existing one is used only when it is a real directory
+(not a symbolic link), owned by the current user and not writable by group
+or others; otherwise a `warnings.warn` names the problem and the fix, and no
+cache is used (nothing is read from it).
+
+Only programs whose compilation took at least `MIN_COMPILE_TIME_SECS` are
+written (JAX's default threshold is 1 s, which leaves out most of a small
+simulation's programs). Programs containing host callbacks (e.g. equinox's
+`error_if`) are never cached by JAX.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import warnings
+
+__all__ = ["setup_compilation_cache", "cache_dir", "check_cache_dir", "MIN_COMPILE_TIME_SECS", "OFF_VALUES"]
+
+OFF_VALUES = ("", "0", "off", "none", "false", "no")
+MIN_COMPILE_TIME_SECS = 0.1
+"""Programs compiled faster than this (s) are not written to the cache: below it,
+reading an entry costs about as much as compiling (measured in benchmarks/cache_effect.py)."""
+
+JAX_DEFAULT_MIN_COMPILE_TIME = 1.0
+_active: str | None = None  # the folder this module gave JAX
+
+
+class UnsafeCacheDirWarning(UserWarning):
+    """The compilation-cache folder could be written by someone else; it is not used."""
+
+
+def cache_dir(environ=None) -> str | None:
+    """The folder jaxnh would use for compiled programs, or None when disabled.
+
+    `$JAXNH_CACHE_DIR` (off/0/none/empty: disabled), else `$XDG_CACHE_HOME/jaxnh`,
+    else `~/.cache/jaxnh`. Nothing is created or checked here.
+    """
+    env = os.environ if environ is None else environ
+    path = env.get("JAXNH_CACHE_DIR")
+    if path is not None:
+        if path.strip().lower() in OFF_VALUES:
+            return None
+        return os.path.abspath(os.path.expanduser(path))
+    base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.abspath(os.path.join(base, "jaxnh"))
+
+
+def _uid():
+    getuid = getattr(os, "getuid", None)
+    return None if getuid is None else getuid()
+
+
+def check_cache_dir(path: str) -> str | None:
+    """Why `path` must not hold compiled programs, or None when it is safe.
+
+    Safe: a directory (not a symbolic link to one), owned by the current user,
+    not writable by group or others. A path that does not exist is "missing"
+    (the caller creates it).
+    """
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return "missing"
+    except OSError as e:
+        return f"cannot be inspected ({e.strerror})"
+    if stat.S_ISLNK(st.st_mode):
+        return "is a symbolic link (it could be redirected to a folder others can write)"
+    if not stat.S_ISDIR(st.st_mode):
+        return "is not a directory"
+    uid = _uid()
+    if uid is not None and st.st_uid != uid:
+        return f"is owned by another user (uid {st.st_uid}; you are uid {uid})"
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return f"is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'} (mode {stat.S_IMODE(st.st_mode):04o})"
+    return None
+
+
+def _prepare(path: str) -> str | None:
+    """Create `path` with mode 0700 if missing; return why it is unsafe, or None."""
+    why = check_cache_dir(path)
+    if why != "missing":
+        return why
+    parent = os.path.dirname(path)
+    try:
+        os.makedirs(parent, exist_ok=True)  # ~/.cache and the like: the user's own, usual permissions
+        os.mkdir(path, 0o700)
+        os.chmod(path, 0o700)  # the mode given to mkdir is masked by the umask; make it exact
+    except FileExistsError:
+        pass  # created concurrently (another process): judge what is there now
+    except OSError as e:
+        return f"cannot be created ({e.strerror})"
+    why = check_cache_dir(path)
+    return "cannot be created" if why == "missing" else why
+
+
+def _user_configured(jax) -> bool:
+    if jax.config.jax_compilation_cache_dir:  # set in code, or JAX_COMPILATION_CACHE_DIR
+        return True
+    return not jax.config.jax_enable_compilation_cache
+
+
+def setup_compilation_cache(environ=None) -> str | None:
+    """Turn on JAX's persistent compilation cache in the user's cache folder.
+
+    See the module docstring for the folder, the opt-out (`JAXNH_CACHE_DIR=off`)
+    and the safety rules. Leaves JAX alone when the user configured its cache
+    (`jax_compilation_cache_dir` or `jax_enable_compilation_cache`). Lowers
+    `jax_persistent_cache_min_compile_time_secs` from JAX's default 1 s to
+    `MIN_COMPILE_TIME_SECS` unless the user changed it. Never raises: an
+    unusable folder gives a warning and no cache.
+
+    Returns:
+        The folder now in use, or None (disabled, configured by the user, or refused).
+    """
+    global _active
+    import jax
+
+    env = os.environ if environ is None else environ
+    if _active is not None and jax.config.jax_compilation_cache_dir == _active:
+        return _active  # already set up by an earlier call
+    if _user_configured(jax):
+        return None
+    path = cache_dir(env)
+    if path is None:
+        return None
+    why = _prepare(path)
+    if why is not None:
+        warnings.warn(
+            f"jaxnh: not using the compilation cache folder {path}: it {why}. Compiled programs are native "
+            "code, so a folder others can write would let them run code as you. Fix: remove or chmod 700 it "
+            "(it must be your own directory), or set JAXNH_CACHE_DIR to another folder, or JAXNH_CACHE_DIR=off.",
+            UnsafeCacheDirWarning, stacklevel=2)
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    if ("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
+            and jax.config.jax_persistent_cache_min_compile_time_secs == JAX_DEFAULT_MIN_COMPILE_TIME):
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)
+    _reset_if_checked_without_cache()
+    _active = path
+    return path
+
+
+def _reset_if_checked_without_cache() -> None:
+    """If something was compiled before the folder was set, JAX has already decided
+    "no cache" for this process; let it decide again (JAX's documented reset)."""
+    try:
+        from jax._src import compilation_cache as cc
+    except ImportError:  # pragma: no cover - layout of a future jax
+        return
+    if getattr(cc, "_cache_checked", False) and not getattr(cc, "_cache_used", False) and cc._cache is None:
+        cc.reset_cache()

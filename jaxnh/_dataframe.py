@@ -1,0 +1,201 @@
+"""Data out: a `Solution` as a pandas DataFrame, a `FitResult` as JSON-ready data.
+
+pandas is optional: it is imported only inside `solution_to_dataframe`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["solution_to_dataframe", "fit_result_to_dict", "json_safe", "fit_status", "FIT_STATUSES"]
+
+FIT_STATUSES = ("fitted", "not_converged", "not_identifiable", "simulation_failed", "non_finite")
+
+
+def json_safe(x: Any) -> Any:
+    """`x` as plain JSON data: dicts (string keys), lists, str, bool, int, float
+    and None; NumPy/JAX arrays become (nested) lists and every non-finite
+    float (NaN, ±inf) becomes None, so `json.dumps(..., allow_nan=False)`
+    cannot fail half-way. Raises TypeError for anything else."""
+    if x is None or isinstance(x, (bool, str)):
+        return x
+    if isinstance(x, (int, np.integer)) and not isinstance(x, np.bool_):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if hasattr(x, "__array__") or isinstance(x, np.ndarray):
+        a = np.asarray(x)
+        if a.dtype == object:
+            return [json_safe(v) for v in a.tolist()]
+        if a.dtype.kind in "fc":
+            a = a.real.astype(float)
+            return json_safe(a.tolist()) if a.ndim else json_safe(float(a))
+        return json_safe(a.tolist())
+    raise TypeError(f"json_safe: cannot represent a {type(x).__name__} as JSON")
+
+
+def fit_status(result) -> str:
+    """One word for a `FitResult`: "fitted" when converged, identifiable and every
+    reported number finite; else "simulation_failed", "non_finite",
+    "not_converged" or "not_identifiable" (the first that applies)."""
+    if "SIMULATION FAILED" in result.message:
+        return "simulation_failed"
+    nums = [np.asarray(result.values, dtype=float), np.asarray([result.rms_residual, result.chi2_dof], dtype=float),
+            np.asarray(result.q0, dtype=float), np.asarray(result.qd0, dtype=float)]
+    if not all(np.all(np.isfinite(a)) for a in nums):
+        return "non_finite"
+    if not result.converged:
+        return "not_converged"
+    if not result.identifiable or not np.all(np.isfinite(np.asarray(result.std, dtype=float))):
+        return "not_identifiable"
+    return "fitted"
+
+
+def fit_result_to_dict(result, arrays: bool = False) -> dict:
+    """`FitResult.to_dict`: see there. Every number is a finite float or None."""
+    par = result.problem.par
+    free = tuple(par.names)
+    status = fit_status(result)
+    est = result.estimates
+    lof = result.lack_of_fit
+    ident = result.identifiability
+    out = {
+        "status": status,
+        "ok": status == "fitted",
+        "converged": bool(result.converged),
+        "identifiable": bool(result.identifiable),
+        "iterations": int(result.iterations),
+        "message": result.message,
+        "parameters": {k: {"value": est[k]["value"], "std": est[k]["std"]} for k in free if k in est},
+        "positive": [n for n, p in zip(par.names, par.positive) if p],
+        "initial_state": {k: v for k, v in est.items() if k not in free},
+        "labels": list(result.labels),
+        "values": result.values,
+        "std": result.std,
+        "covariance": result.covariance,
+        "q0": result.q0,
+        "qd0": result.qd0,
+        "observe": list(result.observe),
+        "n_samples": int(np.shape(result.t)[0]),
+        "t_range": [result.t[0], result.t[-1]] if np.shape(result.t)[0] else None,
+        "rms_residual": result.rms_residual,
+        "rms_by_channel": result.rms_by_channel,
+        "noise": result.noise,
+        "chi2_dof": result.chi2_dof,
+        "lack_of_fit": {"significant": bool(lof.significant), "s2": lof.s2, "s2_threshold": lof.threshold,
+                        "model_error_over_noise": lof.model_error_over_noise,
+                        "model_error_rms": lof.model_error_rms, "residual_autocorrelation": lof.autocorrelation,
+                        "message": lof.message},
+        "identifiability": {"identifiable": bool(ident.identifiable), "condition": ident.condition,
+                            "singular_values": ident.singular_values, "undetermined": ident.undetermined,
+                            "poorly_determined": list(ident.poorly_determined), "messages": list(ident.messages)},
+        "gn_step": result.gn_step,
+        "optimizer": result.optimizer,
+        "differentiation": result.differentiation,
+        "shooting": int(result.shooting),
+        "elapsed_s": result.elapsed,
+    }
+    if arrays:
+        out.update(t=result.t, measured=result.measured, fitted=result.fitted, residuals=result.residuals)
+    return json_safe(out)
+
+
+def _names(sol, s: int) -> tuple:
+    names = getattr(sol, "names", None)
+    if names is not None and len(names) == s:
+        return tuple(str(n) for n in names)
+    return tuple(f"q{i}" for i in range(s))
+
+
+def solution_to_dataframe(sol):
+    """A `Solution` as a `pandas.DataFrame`, one row per report time.
+
+    Columns: the coordinates by name (e.g. "phi1", rad), the velocities as
+    "<name>_dot" (rad/s), and when recorded "energy" (J), "lambda_<i>" (the
+    multipliers) and "residual_<i>" (the constraint values). The index is "t"
+    (s). After a failed solve the rows past the failure are NaN (as in the
+    Solution); `df.attrs["message"]` holds `sol.message` and
+    `df.attrs["success"]` whether the solve succeeded.
+
+    A batched Solution (from `jax.vmap` or `jaxnh.sweep`: arrays with leading
+    batch axes) gives a long table with a two-level index ("batch", "t"),
+    "batch" counting the batch elements in C order, and a "success" column.
+
+    Raises:
+        ImportError when pandas is not installed; ValueError for a traced
+        (inside jit) or inconsistent Solution.
+    """
+    try:
+        import pandas as pd
+    except ImportError:
+        raise ImportError("Solution.to_dataframe needs pandas (pip install pandas); the arrays are "
+                          "sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual") from None
+    try:
+        q = np.asarray(sol.q)
+        qd = np.asarray(sol.qd)
+        ts = np.asarray(sol.ts)
+    except Exception as e:  # a tracer: inside jit/vmap
+        raise ValueError("to_dataframe: the Solution holds traced values (inside jax.jit/vmap); call it on the "
+                         f"returned Solution outside the transformation ({type(e).__name__})") from None
+    if q.ndim < 2:
+        raise ValueError(f"to_dataframe: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
+    batch_shape = q.shape[:-2]
+    n, s = q.shape[-2:]
+    names = _names(sol, s)
+    optional = {}
+    for attr, label in (("energy", "energy"), ("multipliers", "lambda"), ("residual", "residual")):
+        v = getattr(sol, attr, None)
+        if v is not None:
+            optional[label] = np.asarray(v)
+    status = getattr(sol, "status", None)
+    success = np.asarray(getattr(sol, "success", np.ones(batch_shape, bool)))
+
+    def table(i):
+        ix = i if batch_shape else ()
+        t = ts[ix] if ts.ndim > 1 else ts
+        cols = {}
+        for j, nm in enumerate(names):
+            cols[nm] = q[ix][:, j]
+        for j, nm in enumerate(names):
+            cols[f"{nm}_dot"] = qd[ix][:, j]
+        for label, v in optional.items():
+            v = v[ix]
+            if v.ndim == 1:
+                cols[label] = v
+            else:
+                for k in range(v.shape[-1]):
+                    cols[f"{label}_{k}"] = v[:, k]
+        if np.shape(t) != (n,):
+            raise ValueError(f"to_dataframe: sol.ts has shape {ts.shape}, inconsistent with sol.q {q.shape}")
+        return pd.DataFrame(cols, index=pd.Index(np.asarray(t, dtype=float), name="t"))
+
+    if not batch_shape:
+        df = table(())
+        try:
+            df.attrs["message"] = sol.message
+        except Exception:
+            df.attrs["message"] = ""
+        df.attrs["success"] = bool(np.all(success))
+        return df
+    parts, keys = [], []
+    for b, ix in enumerate(np.ndindex(*batch_shape)):
+        part = table(ix)
+        part.insert(0, "success", bool(success[ix]) if success.shape == batch_shape else bool(np.all(success)))
+        parts.append(part)
+        keys.append(b)
+    df = pd.concat(parts, keys=keys, names=["batch", "t"])
+    df.attrs["batch_shape"] = tuple(int(x) for x in batch_shape)
+    df.attrs["success"] = bool(np.all(success))
+    if status is not None:
+        df.attrs["message"] = "success" if df.attrs["success"] else "some batch elements failed (see 'success')"
+    return df
