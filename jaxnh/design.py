@@ -12,7 +12,9 @@ gradient comes from differentiating through the solver (diffrax's
   interval (lower, upper) with a sigmoid, so physical limits (a ratio the
   mechanism can reach) hold for every value of the trainable coefficients
   and the optimiser needs no projection.
-* `optimize`: an optax loop over the inexact-array leaves of a pytree.
+* `optimize`: an optax loop over the inexact-array leaves of a pytree
+  (reverse- or forward-mode gradients); `multistart` runs it from several
+  starts and keeps the best acceptable result.
 * `fd_gradient`: central differences over the same leaves, to check a
   gradient obtained by autodiff.
 
@@ -43,7 +45,7 @@ from jaxtyping import Array, Float
 
 from .profiles import Bounded, Profile, trainable as trainable_leaves  # noqa: F401  (Bounded re-exported)
 
-__all__ = ["Chebyshev", "Bounded", "optimize", "fd_gradient"]
+__all__ = ["Chebyshev", "Bounded", "optimize", "multistart", "fd_gradient"]
 
 
 class Chebyshev(Profile):
@@ -91,6 +93,7 @@ def optimize(
     steps: int = 200,
     trainable: Any = None,
     callback: Optional[Callable[[int, float, Any], Any]] = None,
+    gradient: str = "reverse",
 ):
     """Minimise `loss(params)` with optax, differentiating through `simulate`.
 
@@ -107,33 +110,34 @@ def optimize(
             windows or bounds), elsewhere every inexact array. The rest are
             held fixed.
         callback: `callback(step, loss_value, params)` after every step.
+        gradient: "reverse" (`jax.grad`, default) or "forward" (`jax.jacfwd`
+            over the trainable entries: one tangent per design variable; for
+            losses that are themselves built from forward-mode derivatives,
+            e.g. a Fisher information, where reverse mode is not available).
 
     Returns:
         `(best_params, history)`: the params with the lowest loss seen
         (evaluated before each update, and after the last) and the loss
         values as a NumPy array of length `steps + 1`.
+
+    The compiled update is cached on (loss, optimizer, the structure of
+    params): calling `optimize` again with the same `loss` and `optimizer`
+    objects (e.g. from several starts) does not compile again.
     """
     if int(steps) != steps or steps < 0:
         raise ValueError(f"optimize: steps must be a non-negative integer; got {steps!r}")
+    if gradient not in ("reverse", "forward"):
+        raise ValueError(f"optimize: gradient must be 'reverse' or 'forward'; got {gradient!r}")
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
     spec = trainable_leaves(params) if trainable is None else trainable
     theta, rest = eqx.partition(params, spec)
     opt_state = optimizer.init(theta)
 
-    @eqx.filter_jit
-    def step(theta, opt_state):
-        value, g = eqx.filter_value_and_grad(lambda th: loss(eqx.combine(th, rest)))(theta)
-        updates, opt_state = optimizer.update(g, opt_state, theta)
-        return eqx.apply_updates(theta, updates), opt_state, value
-
-    @eqx.filter_jit
-    def value_only(theta):
-        return loss(eqx.combine(theta, rest))
-
     history = []
     best, best_value = theta, np.inf
+    value = np.inf
     for k in range(int(steps)):
-        new, opt_state, value = step(theta, opt_state)
+        new, opt_state, value = _optimize_step(loss, optimizer, gradient, theta, rest, opt_state)
         value = float(value)
         if not np.isfinite(value):
             raise FloatingPointError(f"optimize: loss is {value} at step {k}; lower the learning rate or check the model")
@@ -143,11 +147,109 @@ def optimize(
         if callback is not None:
             callback(k, value, eqx.combine(theta, rest))
         theta = new
-    value = float(value_only(theta))
+    value = float(_optimize_value(loss, theta, rest))
     history.append(value)
     if value < best_value:
         best = theta
     return eqx.combine(best, rest), np.asarray(history)
+
+
+def _forward_value_and_grad(f, theta):
+    """Value and gradient of the scalar f over the array leaves of theta by forward mode (jacfwd)."""
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    sizes = [int(np.prod(np.shape(x))) for x in leaves]
+    flat = jnp.concatenate([jnp.ravel(x) for x in leaves])
+
+    def g(v):
+        parts, i = [], 0
+        for x, n in zip(leaves, sizes):
+            parts.append(v[i:i + n].reshape(jnp.shape(x)).astype(x.dtype))
+            i += n
+        out = f(jax.tree_util.tree_unflatten(treedef, parts))
+        return out, out
+
+    grad, value = jax.jacfwd(g, has_aux=True)(flat)
+    parts, i = [], 0
+    for x, n in zip(leaves, sizes):
+        parts.append(grad[i:i + n].reshape(jnp.shape(x)).astype(x.dtype))
+        i += n
+    return value, jax.tree_util.tree_unflatten(treedef, parts)
+
+
+@eqx.filter_jit
+def _optimize_step(loss, optimizer, gradient, theta, rest, opt_state):
+    def f(th):
+        return loss(eqx.combine(th, rest))
+
+    if gradient == "forward":
+        value, g = _forward_value_and_grad(f, theta)
+    else:
+        value, g = eqx.filter_value_and_grad(f)(theta)
+    updates, opt_state = optimizer.update(g, opt_state, theta)
+    return eqx.apply_updates(theta, updates), opt_state, value
+
+
+@eqx.filter_jit
+def _optimize_value(loss, theta, rest):
+    return loss(eqx.combine(theta, rest))
+
+
+def multistart(
+    loss: Callable[[Any], Any],
+    starts,
+    *,
+    accept: Optional[Callable[[Any], Any]] = None,
+    learning_rate: float = 0.05,
+    optimizer: Optional[optax.GradientTransformation] = None,
+    progress: bool = False,
+    **kwargs,
+):
+    """`optimize` from several starting pytrees; keep the best acceptable result.
+
+    Arguments:
+        loss: scalar function of the params pytree.
+        starts: a list of starting params pytrees (same structure).
+        accept: `accept(params) -> (ok, evaluation)` judging a result (e.g.
+            "every constraint holds"); default: every result is acceptable and
+            its evaluation is {"value": loss}. Results that are not accepted
+            are kept only when none is.
+        learning_rate: step size of the default optimiser `optax.adam`.
+        optimizer: an optax transformation (overrides `learning_rate`).
+        progress: print one line per start.
+        **kwargs: passed to `optimize` (`steps`, `trainable`, `gradient`).
+
+    Returns:
+        `(best_params, runs, index)`: the best result (lowest
+        evaluation["value"] among accepted ones), a list of dicts per start
+        ("params", "history", "accepted", "evaluation", "error" for a start
+        whose loss became non-finite) and the index of the best. One
+        compilation serves every start.
+    """
+    starts = list(starts)
+    if not starts:
+        raise ValueError("multistart: give at least one starting pytree")
+    optimizer = optax.adam(learning_rate) if optimizer is None else optimizer
+    runs = []
+    for i, p0 in enumerate(starts):
+        try:
+            p, hist = optimize(loss, p0, optimizer=optimizer, **kwargs)
+        except FloatingPointError as e:
+            runs.append({"params": p0, "history": np.asarray([]), "accepted": False,
+                         "evaluation": {"value": float("inf")}, "error": str(e)})
+            if progress:
+                print(f"  start {i}: failed ({e})", flush=True)
+            continue
+        if accept is None:
+            ok, ev = True, {"value": float(np.min(hist))}  # optimize returns the params of the lowest loss
+        else:
+            ok, ev = accept(p)
+        runs.append({"params": p, "history": hist, "accepted": bool(ok), "evaluation": ev})
+        if progress:
+            print(f"  start {i}: loss {hist[0]:.5g} -> {hist[-1]:.5g}, value {ev['value']:.5g}, "
+                  f"{'acceptable' if ok else 'NOT acceptable'}", flush=True)
+    pool = [i for i, r in enumerate(runs) if r["accepted"]] or list(range(len(runs)))
+    k = min(pool, key=lambda i: runs[i]["evaluation"]["value"])
+    return runs[k]["params"], runs, k
 
 
 def fd_gradient(f: Callable[[Any], Any], params, h: float = 1e-6, trainable: Any = None):

@@ -29,11 +29,18 @@ from .parameters import Parametrisation, resolve
 from .problem import (FAILED_RESIDUAL, Observations, Problem, _Progress, solve_least_squares, statistics,
                       value_and_jacobian)
 
-__all__ = ["fit", "prepare", "FitResult", "OPTIMIZERS", "GN_STEP_TOL", "FORWARD_MAX_UNKNOWNS"]
+__all__ = ["fit", "prepare", "FitResult", "OPTIMIZERS", "GN_STEP_TOL", "FORWARD_MAX_UNKNOWNS", "ode_error_in_std",
+           "ODE_ERROR_STD"]
 
 OPTIMIZERS = ("levenberg-marquardt",)
 GN_STEP_TOL = 0.1  # converged: the remaining Gauss–Newton step is below 0.1 standard errors ...
 STEP_RTOL = 1e-9  # ... or below 1e-9 of every unknown (data fitted to rounding: noise-free records)
+AUTO_RTOL_START = 1e-8  # rtol="auto": where the fit starts ...
+AUTO_RTOL_MIN = 1e-12  # ... and the tightest it goes
+ODE_ERROR_STD = 0.05  # rtol="auto": the solver's error may move no estimate by more than this many standard
+# errors: the precision at which Levenberg–Marquardt stops (problem.GN_STOP_TOL); measured on the embedded record
+# at rtol 1e-8: 0.03 (no tightening), on issue 18's informative record: see benchmarks/EXPERIMENT.md
+AUTO_REFINEMENTS = 3  # rtol="auto": at most this many tightenings
 FORWARD_MAX_UNKNOWNS = 32  # optax: forward-mode gradients up to this many unknowns, reverse above
 RATE_WINDOW = 15  # samples used to estimate a starting velocity from the data
 
@@ -389,7 +396,7 @@ def fit(
     qd0=None,
     method: str = "appell",
     solver=None,
-    rtol: float = 1e-8,
+    rtol="auto",
     atol: float = 1e-10,
     max_steps: int = 100_000,
     optimizer="levenberg-marquardt",
@@ -427,7 +434,15 @@ def fit(
             are held at q0 (default 0).
         method, solver, rtol, atol, max_steps: passed to `simulate`; with
             `solver=None` and measured inputs (`jaxnh.profiles.Sampled`) in
-            params, `diffrax.Tsit5` (see `fit_solver`).
+            params, `diffrax.Tsit5` (see `fit_solver`). `rtol="auto"`
+            (default): the ODE tolerance follows the precision the data
+            demand — the fit starts at `AUTO_RTOL_START` (1e-8, atol as
+            given) and, once fitted, measures the solver's own error against
+            a solve 1000× tighter; if that error, projected on what the
+            parameters can explain, exceeds `ODE_ERROR_STD` standard errors,
+            rtol and atol are tightened in proportion (at most to
+            `AUTO_RTOL_MIN`) and the fit is continued from where it stopped
+            (`ode_error_in_std`). A number fixes rtol.
         optimizer: "levenberg-marquardt" (optimistix, default) or an optax
             `GradientTransformation` (e.g. `optax.adam(1e-2)`), which works on
             θ (log-parameters for positive ones).
@@ -467,6 +482,10 @@ def fit(
                          "Jacobian of every residual (forward mode); use an optax optimizer for reverse mode")
     if not isinstance(shooting, (int, np.integer)) or isinstance(shooting, bool) or shooting < 1:
         raise ValueError(f"shooting must be a positive integer (number of segments); got {shooting!r}")
+    auto_rtol = isinstance(rtol, str)
+    if auto_rtol and rtol != "auto":
+        raise ValueError(f"rtol must be a number or 'auto'; got {rtol!r}")
+    rtol = AUTO_RTOL_START if auto_rtol else rtol
     kw = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0, method=method,
               solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
     iterations = 0
@@ -506,8 +525,65 @@ def fit(
             r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
         why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
         opt_name = "optax"
+    # The ODE tolerance follows the precision the data demand: tighten it while the solver's own error is
+    # not negligible against the standard errors, and continue the fit from where it stopped.
+    for _ in range(AUTO_REFINEMENTS if auto_rtol else 0):
+        err = ode_error_in_std(problem, theta, obs, r, J)
+        if err <= ODE_ERROR_STD or problem.rtol <= AUTO_RTOL_MIN:
+            break
+        factor = max(min(0.5 * ODE_ERROR_STD / err, 0.1), 1e-3)  # error ∝ tolerance; at least 10× tighter
+        new_rtol = max(problem.rtol * factor, AUTO_RTOL_MIN)
+        problem = dataclasses.replace(problem, rtol=new_rtol, atol=problem.atol * new_rtol / problem.rtol)
+        if progress:
+            print(f"  the ODE solver's error is {err:.2g} standard errors (> {ODE_ERROR_STD}): "
+                  f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}")
+        if lm:
+            out = solve_least_squares(problem, jnp.asarray(theta), obs, tol=tol, max_steps=max_iterations,
+                                      progress=_progress(problem, names, obs) if progress else None)
+            theta, r, J = out["theta"], out["r"], out["J"]
+            iterations += int(out["steps"])
+            code = int(out["result"])
+            stopped = code == 0
+            why = "stopped on its tolerances" if stopped else (
+                f"iteration limit ({max_iterations}) reached"
+                if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
+                else f"optimistix stopped: {_optx_message(code)}")
+        else:
+            theta, r, J, its, stopped = _optax_loop(problem, optimizer, jnp.asarray(theta), obs, tol,
+                                                    max_iterations, progress)
+            iterations += its
+            if J is None:
+                r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
+            why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
+        why += f" (ODE rtol tightened to {problem.rtol:.2g}: at the start the solver's error was {err:.2g} standard errors)"
     return _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, opt_name,
                    differentiation, shooting, time.perf_counter() - started, noise_estimated=noise is None)
+
+
+def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
+    """The ODE solver's error at θ, in standard errors of the estimates.
+
+    The fitted channels (from the weighted residuals r at θ) are compared
+    with a solve at 1000× tighter tolerances; the difference, in noise
+    units, is projected on the range of the weighted Jacobian J — the part
+    that would move the estimates. Its length is the shift of the estimate
+    that the solver's error causes, in standard errors (for noise levels as
+    stated; the fit's own s² is not used, so noise-free records count against
+    their stated noise). Returns inf when a solve failed.
+    """
+    n, k = obs.y.shape
+    fine = dataclasses.replace(problem, rtol=problem.rtol * 1e-3, atol=problem.atol * 1e-3)
+    q_fine = np.asarray(_trajectory(fine, jnp.asarray(theta), obs.t))[:, list(problem.observed)]
+    sigma = np.asarray(obs.sigma)
+    w = np.asarray(r)[: n * k].reshape(n, k)
+    if np.any(w == FAILED_RESIDUAL) or not np.all(np.isfinite(q_fine)):
+        return float("inf")
+    e = ((np.asarray(obs.y) + w * sigma - q_fine) / sigma).reshape(-1)
+    Jd = np.asarray(J)[: n * k]
+    c = np.linalg.norm(Jd, axis=0)
+    U, sv, _ = np.linalg.svd(Jd / np.where(c > 0, c, 1.0), full_matrices=False)
+    U = U[:, sv > 1e-10 * sv[0]]
+    return float(np.linalg.norm(U.T @ e))
 
 
 def _optx_message(code: int) -> str:

@@ -1,0 +1,668 @@
+"""Design an experiment before measuring: Fisher information, predicted
+standard errors, identifiability, and optimal inputs.
+
+For white measurement noise of standard deviation σ_c on channel c, the
+weighted residuals of a fit are `r = (q_sim(θ) − y) / σ`, and near the truth
+the least-squares estimate has covariance `(JᵀJ)⁻¹` with `J = ∂r/∂θ` — the
+Fisher information `F = JᵀJ` of the experiment (Gauss–Newton; e.g. Walter &
+Pronzato, *Identification of Parametric Models from Experimental Data*,
+Springer 1997, ch. 6). J depends on the inputs, the duration, the sensors
+and the nominal parameters, but not on the data, so it can be computed
+before any data exist: simulate the nominal motion and differentiate it
+(forward sensitivities, as the fit does).
+
+Everything here reuses the fit's own set-up: `prepare` builds the same
+`Problem` (unknowns θ = free parameters, logarithms for positive ones, plus
+the initial positions of the observed coordinates and the independent
+initial velocities, which a fit always estimates), `statistics` gives the
+covariance from the same column-scaled SVD, and `analyse` the same
+identifiability report. A predicted standard error is therefore what `fit`
+would report on a record of this experiment (up to the residual-variance
+scaling, ≈ 1 when the noise model is right).
+
+* `experiment(...)` → `Experiment`: the pure-JAX object (jit, vmap, grad
+  through forward mode) that maps a params pytree (with the inputs in it)
+  to J, F and the criterion.
+* `predict(...)` → `Prediction`: F, covariance, standard errors, bands of
+  profiles, and the identifiability diagnosis, as NumPy.
+* `optimal_design(...)` → `DesignResult`: inputs that minimise a
+  D-optimal, A-optimal or named-variance criterion subject to the limits of
+  a test rig (input bounds by `jaxnh.profiles.Bounded`, energy and power
+  budgets, contact-force limit |λ| ≤ λmax), by gradient through
+  `jaxnh.design.optimize`, from several starts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Optional, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._mechanism import Mechanism
+from .._sensitivity import ForwardSensitivity
+from .._simulate import STATUS, simulate
+from ..profiles import trainable
+from .data import Record
+from .diagnostics import Identifiability, analyse
+from ._fit import FitResult, prepare
+from .parameters import resolve
+from .problem import Problem, statistics
+
+__all__ = [
+    "ChannelNoise", "encoder_noise", "Experiment", "experiment", "Prediction", "predict", "Limits",
+    "DesignResult", "optimal_design", "design_loss", "evaluate_design", "input_spec", "CRITERIA",
+    "embedded_truth", "variator_experiment",
+]
+
+CRITERIA = ("D", "A")
+CONSTRAINT_MARGIN = 0.98  # the penalties act from 98 % of a limit, so the optimum keeps to the limit itself
+PENALTY = 1e3  # weight of a squared relative violation against the criterion (a log, ~1 per factor e)
+
+
+# --- the noise model -----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelNoise:
+    """Measurement error of one channel: white Gaussian noise of standard
+    deviation `std` and, optionally, quantisation to steps of `step` (an
+    encoder's count, same units, rad), whose error is uniform over one step
+    (variance step²/12) when the motion sweeps many counts between samples.
+
+    `total` is the standard deviation of the reading error,
+    `sqrt(std² + step²/12)`.
+    """
+
+    std: float = 0.0
+    step: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.std) and np.isfinite(self.step) and self.std >= 0 and self.step >= 0):
+            raise ValueError(f"ChannelNoise: std and step must be finite and ≥ 0; got std={self.std}, step={self.step}")
+        if self.total <= 0:
+            raise ValueError("ChannelNoise: std and step are both zero; a channel without noise has infinite information")
+
+    @property
+    def total(self) -> float:
+        return float(math.sqrt(self.std**2 + self.step**2 / 12.0))
+
+
+def encoder_noise(counts_per_rev: float, jitter_std: float = 0.0) -> ChannelNoise:
+    """The reading error of an incremental encoder with `counts_per_rev` counts
+    per revolution (step 2π/counts rad) and Gaussian jitter `jitter_std` (rad)
+    added before the count (the embedded record's model)."""
+    if not counts_per_rev > 0:
+        raise ValueError(f"counts_per_rev must be > 0; got {counts_per_rev!r}")
+    return ChannelNoise(std=float(jitter_std), step=2 * math.pi / float(counts_per_rev))
+
+
+def _sigmas(noise, observe) -> dict:
+    if noise is None:
+        raise ValueError("noise: give the measurement noise per observed channel, e.g. "
+                         "{'phi1': encoder_noise(8192, 3e-4), 'phi2': 7e-4} (rad); it sets the information")
+    if not isinstance(noise, dict):
+        noise = {c: noise for c in observe}
+    missing = [c for c in observe if c not in noise]
+    if missing:
+        raise ValueError(f"noise: no noise given for observed channel(s) {missing}")
+    out = {}
+    for c in observe:
+        v = noise[c]
+        s = v.total if isinstance(v, ChannelNoise) else float(v)
+        if not (np.isfinite(s) and s > 0):
+            raise ValueError(f"noise[{c!r}]: the standard deviation must be finite and > 0; got {v!r}")
+        out[c] = s
+    return out
+
+
+# --- the experiment as a pure-JAX object -------------------------------------------------------------
+
+
+class Experiment(eqx.Module):
+    """An experiment as the fit would see it, before any data: the `Problem`
+    of `prepare`, the report times, the noise, and the nominal initial state.
+
+    Everything is a pure function of a params pytree (the nominal free
+    parameters and the inputs inside it), so it works under `jax.jit` and
+    forward-mode differentiation with respect to the inputs (use
+    `jax.jacfwd`/`jax.jvp`; reverse mode through the sensitivity solve is not
+    available).
+
+    Attributes:
+        problem: the `Problem` (`jaxnh.identify.prepare`), single shooting.
+        ts: report (sample) times (n,), s.
+        sigma: noise standard deviation per observed channel (k,), rad.
+        state: the initial-state entries of θ (observed positions, independent
+            velocities), nominal.
+        labels: label of every entry of θ.
+    """
+
+    problem: Problem
+    ts: jax.Array
+    sigma: jax.Array
+    state: jax.Array
+    labels: tuple = eqx.field(static=True)
+
+    @property
+    def n_params(self) -> int:
+        """Entries of θ that are free parameters (the rest is the initial state)."""
+        return self.problem.par.size
+
+    def theta(self, params=None):
+        """θ at `params` (default: the nominal params)."""
+        par = self.problem.par
+        return jnp.concatenate([par.pack(par.params if params is None else params), self.state])
+
+    def with_params(self, params) -> "Experiment":
+        """The same experiment with other inputs (and nominal values) from `params`."""
+        return eqx.tree_at(lambda e: e.problem.par.params, self, params)
+
+    def simulate(self, params=None, theta=None, record=("multipliers",), adjoint=None):
+        """The nominal motion at `params` (θ overrides the free values): a `Solution`."""
+        pr = self.problem if params is None else self.with_params(params).problem
+        th = self.theta(params) if theta is None else theta
+        p = pr.par.unpack(th[:self.n_params])
+        q0, qd0 = pr.initial_state(th, self.ts[0], p)
+        return simulate(pr.mech, p, q0, qd0, self.ts, method=pr.method, solver=pr.solver, rtol=pr.rtol,
+                        atol=pr.atol, independent=pr.independent, max_steps=pr.max_steps,
+                        adjoint=ForwardSensitivity() if adjoint is None else adjoint, throw=False, record=record)
+
+    def jacobian(self, params=None):
+        """Whitened sensitivities J = ∂(q_obs/σ)/∂θ (n·k, size) at `params`,
+        and the nominal `Solution` (with multipliers) from the same solve."""
+        obs = jnp.asarray(self.problem.observed)
+
+        def f(th):
+            sol = self.simulate(params, th)
+            return (sol.q[:, obs] / self.sigma).reshape(-1), sol
+
+        J, sol = jax.jacfwd(f, has_aux=True)(self.theta(params))
+        return J, sol
+
+    def fisher(self, params=None):
+        """Fisher information F = JᵀJ (size, size) of θ, for unit-variance whitened noise."""
+        J, _ = self.jacobian(params)
+        return J.T @ J
+
+
+def _nominal_record(mech, params, ts, q0, qd0, observe, names, method, rtol, atol, max_steps) -> Record:
+    sol = simulate(mech, params, q0, qd0, ts, method=method, rtol=rtol, atol=atol, max_steps=max_steps, throw=False)
+    if not bool(sol.status == STATUS.successful):
+        raise ValueError(f"the nominal experiment cannot be simulated: {sol.message}")
+    q = np.asarray(sol.q)
+    return Record(np.asarray(ts), {c: q[:, names.index(c)] for c in observe}, {}, "nominal (noise-free) simulation")
+
+
+def experiment(
+    mech: Mechanism, params, ts, *, free: Sequence[str], positive: Sequence[str] = (),
+    observe: Optional[Sequence[str]] = None, noise=None, q0=None, qd0=None, method: str = "appell",
+    solver=None, rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 100_000,
+) -> Experiment:
+    """Set up an `Experiment`: the fit's least-squares problem on the nominal
+    (noise-free) motion, before any data.
+
+    Arguments:
+        mech: the `Mechanism`.
+        params: nominal params pytree, with the inputs (torques as profiles of
+            time, N·m) in it; the free parameters' values are the nominal ones.
+        ts: sample times (n,), s: duration and sampling rate of the record.
+        free, positive: as for `fit` (positive ones enter θ as logarithms, so
+            their standard errors are relative ones).
+        observe: measured coordinates (default: all), e.g. ("phi1", "phi2").
+        noise: per observed channel, a standard deviation (rad), a
+            `ChannelNoise` (Gaussian plus quantisation) or `encoder_noise(...)`;
+            a dict by channel or one value for all.
+        q0, qd0: the nominal initial state (s,), must satisfy the constraints
+            (default q0 = 0; qd0 is required).
+        method, solver, rtol, atol, max_steps: as for `fit`.
+    """
+    if not isinstance(mech, Mechanism):
+        raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
+    ts = np.asarray(ts, dtype=float)
+    if ts.ndim != 1 or ts.size < 20 or not np.all(np.diff(ts) > 0):
+        raise ValueError("ts: need a strictly increasing 1-D array of at least 20 sample times (s)")
+    names = mech.coordinate_names(int(np.shape(qd0)[0]) if qd0 is not None else len(mech.names or ()))
+    if qd0 is None:
+        raise ValueError("qd0: give the nominal initial velocities (s,) of the experiment")
+    q0 = np.zeros(len(names)) if q0 is None else np.asarray(q0, dtype=float)
+    qd0 = np.asarray(qd0, dtype=float)
+    observe = tuple(names) if observe is None else ((observe,) if isinstance(observe, str) else tuple(observe))
+    bad = [c for c in observe if c not in names]
+    if bad:
+        raise ValueError(f"observe: {bad} are not coordinates of the mechanism; coordinates are {names}")
+    sig = _sigmas(noise, observe)
+    rec = _nominal_record(mech, params, jnp.asarray(ts), jnp.asarray(q0), jnp.asarray(qd0), observe, list(names),
+                          method, rtol, atol, max_steps)
+    problem, theta0, obs, names = prepare(mech, params, rec, free=free, positive=positive, observe=observe,
+                                          noise=sig, q0=q0, qd0=qd0, method=method, solver=solver, rtol=rtol,
+                                          atol=atol, max_steps=max_steps)
+    P = problem.par.size
+    return Experiment(problem=problem, ts=jnp.asarray(ts), sigma=jnp.asarray(obs.sigma),
+                      state=jnp.asarray(theta0)[P:], labels=problem.labels(names))
+
+
+# --- predicted covariance and identifiability ----------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Prediction:
+    """What a fit of this experiment would report, predicted before the data.
+
+    Attributes:
+        labels: label of every unknown (free parameters, then the initial state).
+        values: nominal values (natural units).
+        std: predicted standard errors (natural units; inf for an undetermined
+            combination).
+        relative_std: std / |value| (nan where the value is 0).
+        covariance: predicted covariance of `values` (natural units,
+            linearised for log-parametrised ones).
+        fisher: Fisher information of θ (log units for positive parameters),
+            (size, size), for the given noise.
+        identifiability: the `Identifiability` report (undetermined
+            combinations named in words, e.g. "only J1/J2 is determined").
+        max_multiplier: max |λ| over the samples of the nominal motion
+            (constraint forces in their units, e.g. N·m), per constraint.
+        status: the nominal solve's status (0 = success).
+    """
+
+    labels: tuple
+    values: np.ndarray
+    std: np.ndarray
+    relative_std: np.ndarray
+    covariance: np.ndarray
+    fisher: np.ndarray
+    identifiability: Identifiability
+    max_multiplier: Optional[np.ndarray]
+    status: int
+    estimates: dict
+    problem: Problem = dataclasses.field(repr=False)
+    theta: np.ndarray = dataclasses.field(repr=False)
+    cov_theta: np.ndarray = dataclasses.field(repr=False)
+    null_directions: np.ndarray = dataclasses.field(repr=False)
+
+    @property
+    def identifiable(self) -> bool:
+        """Whether the experiment determines every free parameter."""
+        return self.identifiability.identifiable
+
+    def band(self, fn, ts):
+        """Predicted value and standard error of `fn(params, t)` at times ts (see `FitResult.band`)."""
+        return FitResult.band(self, fn, ts)
+
+    def profile_band(self, name: str, ts):
+        """Predicted value and standard error of the free profile `name` (e.g. "U21") at times ts."""
+        return FitResult.profile_band(self, name, ts)
+
+    def summary(self) -> str:
+        """A table of nominal values and predicted standard errors, and the diagnosis."""
+        lines = [f"{'parameter':<16}{'nominal':>14}{'pred. std':>12}{'rel.':>9}"]
+        for lab, v, s in zip(self.labels, self.values, self.std):
+            rel = f"{s / abs(v):8.3%}" if v != 0 and np.isfinite(s) else "     n/a"
+            lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
+        lines += self.identifiability.messages or [
+            f"all parameters identifiable (condition number {self.identifiability.condition:.3g})"]
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: {label: {"value", "std", "relative_std"}} plus "identifiable" and "messages"."""
+        def num(x):
+            x = float(x)
+            return x if np.isfinite(x) else None
+        return {"parameters": {lab: {"value": num(v), "std": num(s), "relative_std": num(r)}
+                               for lab, v, s, r in zip(self.labels, self.values, self.std, self.relative_std)},
+                "identifiable": self.identifiable, "messages": list(self.identifiability.messages),
+                "max_abs_multiplier": None if self.max_multiplier is None else self.max_multiplier.tolist()}
+
+
+@eqx.filter_jit
+def _jacobian(exp: Experiment, params):
+    J, sol = exp.jacobian(params)
+    return J, sol.multipliers, sol.status._value
+
+
+def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Prediction:
+    """Predicted standard errors and identifiability of `exp` with the inputs
+    and nominal values in `params` (default: those `exp` was made with).
+
+    The covariance is the pseudo-inverse of the Fisher information through
+    `jaxnh.identify.statistics` (the fit's column-scaled SVD, directions with
+    relative singular value below `rank_tol` undetermined) with the residual
+    variance set to 1 (the noise model is taken as known), and the diagnosis
+    is the fit's `analyse`: with zero torques on the variator it says that
+    only J1/J2 is determined.
+    """
+    if params is not None:
+        exp = exp.with_params(params)
+    J, lam, status = _jacobian(exp, None)
+    J = np.asarray(J)
+    N, p = J.shape
+    # statistics() scales the covariance by s² = |r|²/(N − rank); a residual of length √(N − rank) makes s² = 1
+    st0 = statistics(jnp.asarray(J), jnp.zeros(N), rank_tol=rank_tol)
+    dof = max(N - int(st0["rank"]), 1)
+    r = np.zeros(N)
+    r[0] = math.sqrt(dof)
+    stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
+    par = exp.problem.par
+    log = np.concatenate([par.log_mask(), np.zeros(p - par.size, bool)])
+    theta = np.asarray(exp.theta())
+    values = np.where(log, np.exp(theta), theta)
+    D = np.where(log, values, 1.0)
+    std = np.where(np.isfinite(stats["std"]), stats["std"] * D, np.inf)
+    ident = analyse(stats, exp.labels, log, rank_tol)
+    null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.where(values != 0, std / np.abs(values), np.nan)
+    estimates = {}
+    for name, sl in par.slices().items():
+        scalar = par.shapes[par.names.index(name)] == ((),)
+        v, s = values[sl], std[sl]
+        estimates[name] = {"value": float(v[0]) if scalar else v, "std": float(s[0]) if scalar else s}
+    for j in range(par.size, p):
+        estimates[exp.labels[j]] = {"value": float(values[j]), "std": float(std[j])}
+    lam = None if lam is None else np.max(np.abs(np.asarray(lam)), axis=0)
+    return Prediction(
+        labels=exp.labels, values=values, std=std, relative_std=rel, covariance=stats["cov"] * np.outer(D, D),
+        fisher=J.T @ J, identifiability=ident, max_multiplier=lam, status=int(status), estimates=estimates,
+        problem=exp.problem, theta=theta, cov_theta=stats["cov"], null_directions=null,
+    )
+
+
+# --- design criterion and constraints -----------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Limits:
+    """What a test rig allows; None = no limit.
+
+    Attributes:
+        multiplier: max |λ| of every constraint multiplier along the motion (its
+            units; for the variator the tangential contact force times the
+            roller radius, N·m: above it the friction drive slips).
+        energy: max energy drawn from the drives over the experiment, J:
+            `∫ Σ_i max(Q_i q_i', 0) dt` over the generalized forces Q.
+        power: max drawn power `Σ_i max(Q_i q_i', 0)` at any sample, W.
+        std: {label: max standard error in θ units} (relative for positive
+            parameters), e.g. "no worse than the present experiment".
+    Input amplitude bounds are built into the inputs (`jaxnh.profiles.Bounded`).
+    """
+
+    multiplier: Optional[float] = None
+    energy: Optional[float] = None
+    power: Optional[float] = None
+    std: Optional[dict] = None
+
+
+def _hinge2(x):
+    return jnp.sum(jnp.maximum(x - 1.0, 0.0) ** 2)
+
+
+def _positive_power(exp: Experiment, params, sol):
+    mech = exp.problem.mech
+    Q = jax.vmap(lambda q, qd, t: mech.forces(q, qd, t, params))(sol.q, sol.qd, sol.ts) if mech.forces is not None \
+        else jnp.zeros_like(sol.qd)
+    return jnp.sum(jnp.maximum(Q * sol.qd, 0.0), axis=1)
+
+
+def _criterion_terms(exp: Experiment, params, kind: str, of_idx: tuple, limits: Limits, std_idx: tuple,
+                     std_max: tuple, margin: float = CONSTRAINT_MARGIN):
+    """(criterion, penalties dict, covariance of θ, solution) — pure JAX."""
+    J, sol = exp.jacobian(params)
+    F = J.T @ J
+    c = jnp.sqrt(jnp.diag(F))
+    c = jnp.where(c > 0, c, 1.0)
+    Fs = F / jnp.outer(c, c)
+    cov = jnp.linalg.inv(Fs) / jnp.outer(c, c)  # unit noise; the scaling keeps the inverse well conditioned
+    idx = jnp.asarray(of_idx)
+    C = cov[idx][:, idx]
+    if kind == "D":
+        value = jnp.linalg.slogdet(C)[1]
+    else:
+        value = jnp.log(jnp.trace(C))
+    pen = {}
+    p = exp.problem.par.unpack(exp.theta(params)[:exp.n_params])
+    if limits.multiplier is not None and sol.multipliers is not None:
+        pen["multiplier"] = _hinge2(jnp.abs(sol.multipliers) / (margin * limits.multiplier))
+    if limits.energy is not None or limits.power is not None:
+        pw = _positive_power(exp, p, sol)
+        if limits.energy is not None:
+            e = jnp.sum(0.5 * (pw[1:] + pw[:-1]) * jnp.diff(sol.ts))
+            pen["energy"] = _hinge2(e / (margin * limits.energy))
+        if limits.power is not None:
+            pen["power"] = _hinge2(pw / (margin * limits.power))
+    if std_idx:
+        s = jnp.sqrt(jnp.diag(cov)[jnp.asarray(std_idx)])
+        pen["std"] = _hinge2(s / (margin * jnp.asarray(std_max)))
+    failed = sol.status != STATUS.successful
+    value = jnp.where(failed, jnp.inf, value)
+    return value, pen, cov, sol
+
+
+def _indices(labels, names, n_params) -> tuple:
+    if names is None:
+        return tuple(range(n_params))
+    names = (names,) if isinstance(names, str) else tuple(names)
+    out = []
+    for n in names:
+        hit = [i for i, lab in enumerate(labels) if lab == n or lab.startswith(n + "[")]
+        if not hit:
+            raise ValueError(f"of/limits: {n!r} is not an unknown of the experiment; unknowns are {list(labels)}")
+        out += hit
+    return tuple(dict.fromkeys(out))
+
+
+class _Loss(eqx.Module):
+    """criterion + PENALTY · Σ penalties, as a hashable callable (one compilation for every start)."""
+
+    exp: Experiment
+    kind: str = eqx.field(static=True)
+    of_idx: tuple = eqx.field(static=True)
+    limits: Limits = eqx.field(static=True)
+    std_idx: tuple = eqx.field(static=True)
+    std_max: tuple = eqx.field(static=True)
+    penalty: float = eqx.field(static=True)
+
+    def terms(self, params):
+        return _criterion_terms(self.exp, params, self.kind, self.of_idx, self.limits, self.std_idx, self.std_max)
+
+    def __call__(self, params):
+        value, pen, _, _ = self.terms(params)
+        return value + self.penalty * sum(pen.values(), jnp.zeros(()))
+
+
+def design_loss(exp: Experiment, criterion: str = "D", *, of=None, limits: Optional[Limits] = None,
+                penalty: float = PENALTY) -> _Loss:
+    """The design objective as a function of a params pytree: the criterion
+    plus `penalty` times the squared relative violations of `limits`
+    (counted from 98 % of each limit).
+
+    criterion: "D" — log det of the predicted covariance of the unknowns
+    named by `of` (default: all free parameters, in θ units: relative for
+    positive ones; the initial state is a nuisance, marginalised); "A" — log
+    of the trace of that covariance (with `of=("J1",)`: the log variance of
+    J1 alone).
+    """
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {CRITERIA}; got {criterion!r}")
+    limits = Limits() if limits is None else limits
+    for k in ("multiplier", "energy", "power"):
+        v = getattr(limits, k)
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise ValueError(f"limits.{k} must be a finite number > 0; got {v!r}")
+    of_idx = _indices(exp.labels, of, exp.n_params)
+    std_idx, std_max = (), ()
+    if limits.std:
+        for name, m in limits.std.items():
+            ii = _indices(exp.labels, name, exp.n_params)
+            mm = np.broadcast_to(np.asarray(m, dtype=float), (len(ii),))
+            if not np.all(np.isfinite(mm) & (mm > 0)):
+                raise ValueError(f"limits.std[{name!r}] must be finite and > 0; got {m!r}")
+            std_idx += ii
+            std_max += tuple(float(x) for x in mm)
+    return _Loss(exp, criterion, of_idx, limits, std_idx, std_max, float(penalty))
+
+
+# --- optimal design -----------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class DesignResult:
+    """The outcome of `optimal_design`.
+
+    Attributes:
+        params: the params pytree with the designed inputs (best feasible start).
+        value: its criterion (without penalties).
+        feasible: whether every limit holds at the design (checked exactly on
+            the report times, without margins).
+        violations: {limit: ratio of the largest value to the limit} (≤ 1 when held).
+        starts: per start, a dict with "value", "feasible", "violations", "history".
+        best_start: index of the kept start.
+    """
+
+    params: Any
+    value: float
+    feasible: bool
+    violations: dict
+    starts: list
+    best_start: int
+
+
+@eqx.filter_jit
+def _evaluate(loss: _Loss, params):
+    value, pen, cov, sol = loss.terms(params)
+    out = {"value": value, "status": sol.status._value}
+    lim = loss.limits
+    if lim.multiplier is not None and sol.multipliers is not None:
+        out["multiplier"] = jnp.max(jnp.abs(sol.multipliers)) / lim.multiplier
+    if lim.energy is not None or lim.power is not None:
+        p = loss.exp.problem.par.unpack(loss.exp.theta(params)[:loss.exp.n_params])
+        pw = _positive_power(loss.exp, p, sol)
+        if lim.energy is not None:
+            out["energy"] = jnp.sum(0.5 * (pw[1:] + pw[:-1]) * jnp.diff(sol.ts)) / lim.energy
+        if lim.power is not None:
+            out["power"] = jnp.max(pw) / lim.power
+    if loss.std_idx:
+        out["std"] = jnp.max(jnp.sqrt(jnp.diag(cov)[jnp.asarray(loss.std_idx)]) / jnp.asarray(loss.std_max))
+    return out
+
+
+def evaluate_design(loss: _Loss, params) -> dict:
+    """Criterion value and the ratio of each limited quantity to its limit (floats)."""
+    out = {k: float(v) for k, v in _evaluate(loss, params).items()}
+    out["status"] = int(out["status"])
+    return out
+
+
+def input_spec(params, inputs: Sequence[str]):
+    """The `trainable` mask of `params` marking only the trainable leaves of the named inputs."""
+    inputs = (inputs,) if isinstance(inputs, str) else tuple(inputs)
+    spec = jax.tree_util.tree_map(lambda _: False, params)
+    for name in inputs:
+        sub = resolve(params, name)
+        mask = trainable(sub)
+        if not any(jax.tree_util.tree_leaves(mask)):
+            raise ValueError(f"inputs: {name!r} has no trainable leaves to design (got {type(sub).__name__})")
+        spec = eqx.tree_at(lambda s: resolve(s, name), spec, mask)
+    return spec
+
+
+def optimal_design(
+    exp: Experiment, params, inputs: Sequence[str], criterion: str = "D", *, of=None,
+    limits: Optional[Limits] = None, starts: int = 4, steps: int = 100, learning_rate: float = 0.1,
+    spread: float = 1.0, seed: int = 0, penalty: float = PENALTY, progress: bool = False,
+) -> DesignResult:
+    """Choose the inputs of an experiment by gradient descent on a design criterion.
+
+    Arguments:
+        exp: the `Experiment` (free parameters, sensors, noise, duration).
+        params: the starting params with the inputs to design as profiles
+            whose trainable leaves are the design variables — bound them with
+            `jaxnh.profiles.Bounded` (torque amplitude limits hold by
+            construction), e.g. `Bounded(Fourier(0, cos, sin, period=T), −M, M)`.
+        inputs: names of the params entries to design, e.g. ("M1",).
+        criterion, of, limits, penalty: see `design_loss` and `Limits`.
+        starts: number of starts: the first from `params`, the others from
+            its design leaves plus Gaussian noise of standard deviation
+            `spread` (seeded by `seed`). The best feasible one is kept.
+        steps, learning_rate: Adam iterations and step size per start
+            (`jaxnh.design.optimize`, forward-mode gradients).
+
+    Returns:
+        A `DesignResult`.
+    """
+    from ..design import multistart
+
+    loss = design_loss(exp, criterion, of=of, limits=limits, penalty=penalty)
+    spec = input_spec(params, inputs)
+    theta, rest = eqx.partition(params, spec)
+    leaves, treedef = jax.tree_util.tree_flatten(theta)
+    rng = np.random.default_rng(seed)
+    inits = [params]
+    for _ in range(int(starts) - 1):
+        new = [x + spread * rng.standard_normal(np.shape(x)) for x in leaves]
+        inits.append(eqx.combine(jax.tree_util.tree_unflatten(treedef, [jnp.asarray(x) for x in new]), rest))
+
+    def accept(p):
+        ev = evaluate_design(loss, p)
+        ok = ev["status"] == 0 and all(ev[k] <= 1.0 for k in ("multiplier", "energy", "power", "std") if k in ev)
+        return ok, ev
+
+    best, runs, k_best = multistart(loss, inits, accept=accept, trainable=spec, steps=steps,
+                                    learning_rate=learning_rate, gradient="forward", progress=progress)
+    run = runs[k_best]
+    ev = run["evaluation"]
+    viol = {k: ev[k] for k in ("multiplier", "energy", "power", "std") if k in ev}
+    starts_out = [{"value": r["evaluation"]["value"], "feasible": r["accepted"],
+                   "violations": {k: r["evaluation"][k] for k in viol}, "history": r["history"]} for r in runs]
+    return DesignResult(best, ev["value"], run["accepted"], viol, starts_out, k_best)
+
+
+# --- the variator's embedded set-up -----------------------------------------------------------------
+
+
+def embedded_truth() -> dict:
+    """The values the embedded record was made with (`jaxnh/data/variator_truth.json`):
+    J1, J2 (kg·m²), U21 knots and values, phi0 (rad), w0 (rad/s), duration (s),
+    rate (Hz), counts_per_rev, jitter_std (rad)."""
+    import json
+    from importlib import resources
+
+    return json.loads(resources.files("jaxnh").joinpath("data", "variator_truth.json").read_text())
+
+
+def variator_experiment(record: Optional[Record] = None, *, J1=None, J2=None, U21=None, w0=None,
+                        counts_per_rev=None, jitter_std=None, rtol: float = 1e-8):
+    """The friction variator's identification experiment as `jaxnh fit` sets it up.
+
+    Defaults are the embedded record's: its sample times (6 s at 250 Hz) and
+    torques (as `Sampled` inputs), the true J1, J2 and U21 spline (7 knots) as
+    nominal values, phi(0) = 0, phi1'(0) = w0 = 4 rad/s, and its two
+    encoders (8192 and 4096 counts/rev with 0.3 and 0.6 mrad jitter). The
+    unknowns are J1, J2 and the U21 knot values (positive: logarithms) and the
+    initial state phi1(0), phi2(0), phi1'(0).
+
+    Returns:
+        `(exp, params)`: the `Experiment` and the nominal params (with the
+        record's torques) it was made with.
+    """
+    from ..models import variator as V
+    from ..profiles import CubicSpline
+    from .data import load_default
+    from .variator import FREE, params_for
+
+    T = embedded_truth()
+    record = load_default() if record is None else record
+    U21 = CubicSpline(T["U21_knots"], T["U21_values"]) if U21 is None else U21
+    params = params_for(record, T["J1"] if J1 is None else J1, T["J2"] if J2 is None else J2, U21)
+    counts = T["counts_per_rev"] if counts_per_rev is None else counts_per_rev
+    jitter = T["jitter_std"] if jitter_std is None else jitter_std
+    noise = {c: encoder_noise(n, j) for c, n, j in zip(("phi1", "phi2"), counts, jitter)}
+    w0 = T["w0"] if w0 is None else w0
+    qd0 = [w0, float(U21(record.t[0])) * w0]
+    exp = experiment(V.mechanism(), params, record.t, free=FREE, positive=FREE, noise=noise, q0=T["phi0"], qd0=qd0,
+                     rtol=rtol)
+    return exp, params
