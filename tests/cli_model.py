@@ -73,5 +73,5 @@ def record_text(n=40, duration=2.0, noise=2e-4, seed=0, scale=1.0):
     rng = np.random.default_rng(seed)
     y = np.stack([a, K * a], axis=1) + noise * rng.standard_normal((n, 2))
     y *= scale
-    lines = ["t,a,b,F"] + [f"{ti!r},{ya!r},{yb!r},{f!r}" for ti, (ya, yb), f in zip(t, y, F)]
+    lines = ["t,a,b,F"] + [",".join(repr(float(x)) for x in (ti, ya, yb, f)) for ti, (ya, yb), f in zip(t, y, F)]
     return "\n".join(lines) + "\n"

@@ -358,17 +358,3 @@ def test_argument_errors_name_the_argument():
     back = par.unpack(par.pack())
     np.testing.assert_allclose(back.U21.values, p.U21.values, rtol=1e-15)
     np.testing.assert_allclose(back.J2, p.J2, rtol=1e-15)
-
-
-def test_command_line_compilation_cache_folder_and_switch_off(tmp_path):
-    # a fresh process, so the global JAX setting does not leak into the test session
-    code = ("import jax, jax.numpy as jnp; from jaxnh.cli import use_compilation_cache; "
-            "p = use_compilation_cache(); jax.jit(lambda x: jnp.sin(x) * 2)(1.0).block_until_ready(); print(p)")
-    env = dict(os.environ, JAXNH_CACHE_DIR=str(tmp_path / "cache"))
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == str(tmp_path / "cache")
-    assert any((tmp_path / "cache").iterdir()), "the compiled program was not written to the cache folder"
-    env["JAXNH_CACHE_DIR"] = "off"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
-    assert out.returncode == 0 and out.stdout.strip() == "None", out.stderr

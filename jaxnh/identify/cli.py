@@ -50,6 +50,7 @@ __all__ = ["add_fit_parser", "run_fit", "fit_main", "demo_fit", "estimate_table"
 MODELS = ("variator",)
 Z95 = 1.959963984540054
 MAX_KNOTS = 200
+MAX_ABS = 1e100  # larger values in a record are refused (their squares overflow)
 EXIT_FITTED, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 EXIT_CODES = {EXIT_FITTED: "fitted", EXIT_FAILED: "the fit failed (results written with a failure status)",
               EXIT_BAD_INPUT: "bad input (nothing written)"}
@@ -174,6 +175,16 @@ def _count_check(n_samples: int, n_channels: int, n_unknowns: int, what: str) ->
                        "(use fewer knots or free parameters, or more samples)")
 
 
+def _magnitude_check(record, source) -> None:
+    """Values so large that their squares overflow cannot be fitted in double precision."""
+    for name, v in {"t": record.t, **record.channels, **record.inputs}.items():
+        big = float(np.max(np.abs(v))) if v.size else 0.0
+        if big > MAX_ABS:
+            raise BadInput(f"{source}: column {name!r} has values up to {big:.3g} in magnitude; "
+                           f"beyond {MAX_ABS:.0e} squares and sums overflow in double precision — express the "
+                           "data in other units")
+
+
 def _shooting_check(n: int, shooting: int) -> None:
     from ._fit import RATE_WINDOW
 
@@ -239,6 +250,7 @@ def _plan_variator(args):
             record = record.every(args.every)
     else:
         record, source = _read(args.data, observe, ("M1", "M2"), args), args.data
+    _magnitude_check(record, source)
     knots = DEFAULT_KNOTS if args.knots is None else args.knots
     if knots > record.n:
         raise BadInput(f"--knots {knots}: more knots than the {record.n} samples of the record; use at most "
@@ -265,6 +277,7 @@ def _plan_model(args):
         raise BadInput(f"--observe: expected names among the model's observed coordinates {list(spec.observed)} "
                        f"(each once); got {list(observe)}")
     record = _read(args.data, observe, tuple(spec.inputs), args)
+    _magnitude_check(record, args.data)
     try:
         params = spec.params_for(record)
     except Exception as e:

@@ -359,7 +359,10 @@ def _parse_lines(lines, where, coordinates, inputs, min_samples, max_samples, ev
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):
             continue
-        fields = _split(line.rstrip("\r\n"))
+        try:
+            fields = _split(line.rstrip("\r\n"))
+        except csv.Error as e:
+            raise ValueError(f"{where}: line {lineno} is not a CSV row ({e})") from None
         if header is None:
             header = [h.strip() for h in fields]
             counts = collections.Counter(header)

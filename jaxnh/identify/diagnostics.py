@@ -189,6 +189,11 @@ def lack_of_fit(residuals, sigma, s2: float, dof: int, noise_estimated: bool, ch
         rho[c] = float(r[1:] @ r[:-1] / den) if den > 0 else 0.0
     significant = bool(s2 > threshold)
     ac = ", ".join(f"{c} {v:+.2f}" for c, v in rho.items())
+    if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(sigma)) and np.isfinite(s2)):
+        msg = ("The misfit cannot be judged: the residuals or the noise levels are not finite "
+               "(a failed simulation, or data whose values overflow in double precision).")
+        return LackOfFit(float(s2), float(threshold), False, float("nan"), {c: float("nan") for c in channels},
+                         {c: float("nan") for c in channels}, msg)
     if significant and not converged:
         msg = (f"The residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g}), but the fit has not "
                "converged: the misfit may be the optimiser's rather than the model's.")

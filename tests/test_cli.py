@@ -1,0 +1,286 @@
+"""The command line, in-process (`jaxnh.cli.main([...])`): every check happens before
+fitting, with exit status 2 and a one-line message; outputs are whole or absent;
+`--model module:function` fits a user's own mechanism (tests/cli_model.py, not the
+variator); JSON has null and a failure status where numbers are not finite.
+
+The fits use a 40-sample record of a two-shaft mechanism and share one compiled
+Levenberg–Marquardt solve (same shapes and options, `--quiet`): the first
+compiles, the others reuse it.
+"""
+
+import json
+import os
+import re
+import sys
+
+import numpy as np
+import pytest
+
+from jaxnh.cli import main
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+MODEL = os.path.join(HERE, "cli_model.py") + ":coupled_shafts"
+sys.path.insert(0, HERE)
+import cli_model  # noqa: E402
+
+HEADER = "t,phi1,phi2,M1,M2"
+
+
+def rows(n=25, dt=0.01):
+    return "\n".join(f"{dt * i!r},{0.1 * i!r},{0.2 * i!r},0.1,-0.1" for i in range(n))
+
+
+def run(argv, capsys):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def listing(folder):
+    return sorted(p.name for p in folder.iterdir())
+
+
+def assert_bad_input(code, err, pattern):
+    assert code == 2, err
+    assert err.startswith("jaxnh fit: ") or err.startswith("usage:"), err
+    assert "Traceback" not in err and "np.float64" not in err, err
+    assert re.search(pattern, err), err
+
+
+@pytest.fixture
+def no_fit(monkeypatch):
+    """Fail loudly if a test reaches the fit: the checks must come first."""
+    import jaxnh.identify.cli as cli
+
+    def boom(*a, **k):
+        raise AssertionError("the fit was started before the input was checked")
+
+    monkeypatch.setattr(cli, "_fit", boom)
+
+
+# --- checks before fitting (no compilation) -------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["missing folder", "is a folder", "out is a file", "out parent missing",
+                                  "json is the data"])
+def test_output_paths_are_checked_before_fitting(tmp_path, capsys, no_fit, kind):
+    data = tmp_path / "d.csv"
+    data.write_text(HEADER + "\n" + rows())
+    args = ["fit", str(data), "--quiet"]
+    if kind == "missing folder":
+        args += ["--json", str(tmp_path / "nope" / "fit.json")]
+        pattern = r"--json .*the folder .*nope does not exist"
+    elif kind == "is a folder":
+        args += ["--json", str(tmp_path)]
+        pattern = r"--json .*is a folder"
+    elif kind == "out is a file":
+        args += ["--out", str(data)]
+        pattern = r"--out .*exists and is not a folder"
+    elif kind == "out parent missing":
+        args += ["--out", str(tmp_path / "a" / "b")]
+        pattern = r"--out .*parent folder .* does not exist"
+    else:
+        args += ["--json", str(data)]
+        pattern = r"--json .*is the input file"
+    before = listing(tmp_path)
+    code, out, err = run(args, capsys)
+    assert_bad_input(code, err, pattern)
+    assert listing(tmp_path) == before
+    assert data.read_text().startswith(HEADER)
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write into a read-only folder")
+def test_unwritable_json_folder(tmp_path, capsys, no_fit):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    os.chmod(ro, 0o500)
+    code, out, err = run(["fit", "--json", str(ro / "f.json")], capsys)
+    assert_bad_input(code, err, "not writable")
+
+
+BAD_CSV = [
+    (HEADER + "\n" + rows().replace("0.1,-0.1", "1_000,-0.1", 1), r"line 2, column 'M1': '1_000' is not a number"),
+    (HEADER + "\n" + rows().replace("0.1,-0.1", "1e999,-0.1", 1), r"line 2, column 'M1': '1e999' is beyond"),
+    ("# c\n" + HEADER + "\n" + rows().replace("0.1,-0.1", "nan,-0.1", 1), r"non-finite .* first at line 3 \(t = 0.0\)"),
+    (HEADER + "\n" + rows(10) + "\n0.05,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(11, 25)),
+     r"decreasing time at line 11 and line 12 \(t = 0.09, 0.05\)"),
+    ("t,phi1,M1,M2\n" + rows(), r"missing column\(s\) \['phi2'\]"),
+    (b"\x00\xff\xfe garbage \x81", r"not UTF-8 text"),
+    ("", r"no header row"),
+    (HEADER + "\n" + rows(5), r"too few samples: 5"),
+]
+
+
+@pytest.mark.parametrize("text,pattern", BAD_CSV)
+def test_bad_records_exit_2_and_write_nothing(tmp_path, capsys, no_fit, text, pattern):
+    data = tmp_path / "d.csv"
+    data.write_bytes(text if isinstance(text, bytes) else text.encode())
+    code, out, err = run(["fit", str(data), "--quiet", "--json", str(tmp_path / "o.json"),
+                          "--out", str(tmp_path / "figs")], capsys)
+    assert_bad_input(code, err, pattern)
+    assert str(data) in err
+    assert listing(tmp_path) == ["d.csv"]
+
+
+@pytest.mark.parametrize("args,pattern", [
+    (["--knots", "1000"], r"--knots: 1000 is out of range: expected 2 ≤ value ≤ 200"),
+    (["--knots", "1_0"], r"--knots: '1_0' is not an integer"),
+    (["--knots", "30"], r"--knots 30: more knots than the 25 samples"),
+    (["--knots", "22", "--observe", "phi1"], r"--knots 22: 26 unknowns but only 25 samples × 1 channel"),
+    (["--noise", "0"], r"--noise: '0': expected a finite number > 0"),
+    (["--noise", "nan"], r"--noise: 'nan': expected a finite number > 0"),
+    (["--noise", "1", "2", "3"], r"--noise: give 1 or 2 values"),
+    (["--observe", "phi3"], r"--observe: expected phi1 and/or phi2"),
+    (["--shooting", "5"], r"--shooting 5: segments of 6 samples are too short"),
+    (["--max-iterations", "0"], r"--max-iterations: 0 is out of range"),
+    (["--max-samples", "20"], r"more than 20 samples \(reached at line 22"),
+    (["--every", "2"], r"too few samples: 13"),
+    (["--knots", "3", "--model", MODEL], r"--knots applies to --model variator only"),
+])
+def test_parameter_counts_and_options_are_checked(tmp_path, capsys, no_fit, args, pattern):
+    data = tmp_path / "d.csv"
+    data.write_text(HEADER + "\n" + rows())
+    code, out, err = run(["fit", str(data), "--quiet", *args], capsys)
+    assert_bad_input(code, err, pattern)
+
+
+@pytest.mark.parametrize("ref,pattern", [
+    ("no_such_module_xyz:f", r"no module named 'no_such_module_xyz'"),
+    ("variator2", r"expected 'variator' or 'module:function'"),
+    (MODEL.replace("coupled_shafts", "missing"), r"has no attribute 'missing'"),
+    (MODEL.replace("coupled_shafts", "not_a_spec"), r"must return a jaxnh.identify.spec.FitSpec .* got int"),
+    (MODEL.replace("coupled_shafts", "raises"), r"calling raises\(\) raised RuntimeError: the user's model is "
+                                                r"broken \(at .*cli_model.py:\d+\)"),
+    ("/nonexistent/m.py:f", r"no file /nonexistent/m.py"),
+])
+def test_bad_model_references(tmp_path, capsys, no_fit, ref, pattern):
+    data = tmp_path / "d.csv"
+    data.write_text(cli_model.record_text())
+    code, out, err = run(["fit", str(data), "--model", ref, "--quiet"], capsys)
+    assert_bad_input(code, err, pattern)
+
+
+def test_model_columns_are_the_mechanisms_names(tmp_path, capsys, no_fit):
+    data = tmp_path / "d.csv"
+    data.write_text(HEADER + "\n" + rows())
+    code, out, err = run(["fit", str(data), "--model", MODEL, "--quiet"], capsys)
+    assert_bad_input(code, err, r"missing column\(s\) \['a', 'b', 'F'\]")
+
+
+def test_model_by_module_name(monkeypatch):
+    from jaxnh.identify.spec import load_model
+
+    monkeypatch.chdir(HERE)  # like `python -m`: modules in the current folder are found
+    spec = load_model("cli_model:coupled_shafts_dict")
+    assert spec.free == ("J1", "c") and spec.observed == ("a", "b") and spec.inputs == ("F",)
+
+
+def test_missing_file_and_help(tmp_path, capsys):
+    code, out, err = run(["fit", str(tmp_path / "no.csv")], capsys)
+    assert_bad_input(code, err, r"No such file")
+    code, out, err = run(["fit", "--help"], capsys)
+    assert code == 0
+    text = " ".join(out.split())
+    for s in ("exit status: 0 fitted", "1 the fit failed", "2 bad input", "module:function", "FitSpec",
+              "1-based line numbers"):
+        assert s in text, s
+    code, out, err = run(["fit", "--bogus"], capsys)
+    assert code == 2 and "unrecognized arguments" in err
+
+
+def test_a_crash_in_the_fit_is_a_failure_with_valid_json(tmp_path, capsys, monkeypatch):
+    import jaxnh.identify.cli as cli
+
+    def crash(*a, **k):
+        raise FloatingPointError("overflow in the solver\nsecond line")
+
+    monkeypatch.setattr(cli, "_fit", crash)
+    data = tmp_path / "d.csv"
+    data.write_text(HEADER + "\n" + rows())
+    code, out, err = run(["fit", str(data), "--quiet", "--json", str(tmp_path / "o.json")], capsys)
+    assert code == 1 and "Traceback" not in err
+    assert "the fit failed: FloatingPointError: overflow in the solver" in err
+    rep = json.loads((tmp_path / "o.json").read_text())
+    assert rep["status"] == "error" and rep["ok"] is False
+    assert listing(tmp_path) == ["d.csv", "o.json"]
+
+
+# --- fits with a user's own mechanism (one compilation, shared) -----------------------------------------
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    """`jaxnh fit DATA --model tests/cli_model.py:coupled_shafts --json --out` once for the module."""
+    d = tmp_path_factory.mktemp("fit")
+    data = d / "d.csv"
+    data.write_bytes(b"\xef\xbb\xbf" + cli_model.record_text().encode())  # with a UTF-8 byte-order mark
+    code = main(["fit", str(data), "--model", MODEL, "--json", str(d / "fit.json"), "--out", str(d / "figs"),
+                 "--quiet"])
+    return d, code
+
+
+@pytest.mark.slow
+def test_users_mechanism_is_fitted(fitted):
+    d, code = fitted
+    assert code == 0
+    rep = json.loads((d / "fit.json").read_text())
+    assert rep["status"] == "fitted" and rep["ok"] and rep["model"] == MODEL
+    # the record was made at TRUE with noise 2e-4 rad: the truth lies within 3 standard errors
+    for k, true in cli_model.TRUE.items():
+        v, s = rep["parameters"][k]["value"], rep["parameters"][k]["std"]
+        assert abs(v - true) <= 3 * s, (k, v, s, true)
+        assert s / v < 0.1
+    assert set(rep["initial_state"]) == {"a(t0)", "b(t0)", "b'(t0)"}
+    assert (d / "figs" / "fit_data.png").stat().st_size > 10_000
+    assert sorted(os.listdir(d)) == ["d.csv", "figs", "fit.json"]  # no temporary files left
+    assert sorted(os.listdir(d / "figs")) == ["fit_data.png"]
+
+
+@pytest.mark.slow
+def test_dict_spec_and_to_dict(fitted, tmp_path):
+    """The same fit through the dict form of the contract and through jaxnh.fit directly."""
+    import jaxnh as nh
+    from jaxnh.identify import read_csv
+
+    d, _ = fitted
+    rec = read_csv(d / "d.csv", coordinates=("a", "b"), inputs=("F",))
+    r = nh.fit(cli_model.MECH, cli_model.params(rec), rec, free=("J1", "c"), positive=("J1", "c"), observe=("a", "b"),
+               rtol=1e-8, shooting=1, max_iterations=100, progress=False)
+    dd = r.to_dict(arrays=True)
+    text = json.dumps(dd, allow_nan=False)
+    back = json.loads(text)
+    rep = json.loads((d / "fit.json").read_text())
+    assert back["status"] == "fitted"
+    np.testing.assert_allclose(back["parameters"]["J1"]["value"], rep["parameters"]["J1"]["value"], rtol=1e-9)
+    assert len(back["fitted"]) == rec.n and len(back["covariance"]) == 5
+    assert "FitResult(converged, identifiable" in repr(r) and len(repr(r)) < 400
+    assert str(r) == r.summary()
+    # a result with non-finite numbers: null in JSON, and a status that says so
+    import dataclasses
+
+    bad = dataclasses.replace(r, values=np.r_[np.nan, r.values[1:]], std=np.r_[np.inf, r.std[1:]])
+    dd = json.loads(json.dumps(bad.to_dict(), allow_nan=False))
+    assert dd["status"] == "non_finite" and dd["ok"] is False
+    assert dd["values"][0] is None and dd["std"][0] is None
+
+
+def test_overflowing_record_is_bad_input(tmp_path, capsys, no_fit):
+    data = tmp_path / "d.csv"
+    data.write_text(cli_model.record_text(scale=1e300))
+    code, out, err = run(["fit", str(data), "--model", MODEL, "--json", str(tmp_path / "o.json"), "--quiet"],
+                         capsys)
+    assert_bad_input(code, err, r"column 'a' has values up to 1.\d+e\+300 in magnitude; .* other units")
+    assert listing(tmp_path) == ["d.csv"]
+
+
+@pytest.mark.slow
+def test_no_torque_is_not_identifiable_exit_1(tmp_path, capsys, fitted):
+    # F = 0: (J1 + K² J2) a'' = −K² c a' determines only c / (J1 + K² J2)
+    data = tmp_path / "d.csv"
+    data.write_text(cli_model.record_text().replace(",0.05\n", ",0.0\n"))
+    code, out, err = run(["fit", str(data), "--model", MODEL.replace("coupled_shafts", "coupled_shafts_dict"),
+                          "--json", str(tmp_path / "o.json"), "--quiet"], capsys)
+    rep = json.loads((tmp_path / "o.json").read_text())
+    assert code == 1, (out, err)
+    assert rep["status"] in ("not_identifiable", "not_converged") and not rep["ok"]
+    assert "exit status 1" in out
