@@ -548,6 +548,10 @@ def build(R) -> tuple[str, dict]:
                     [[r["label"], f"{r['import_s']:.1f} s", f"{r['first']['cpu']:.2f} / {r['first']['wall']:.2f} s",
                       fmt_t(r["second"]["cpu"]), f"{r['compile']['cpu']:.2f} / {r['compile']['wall']:.2f} s"]
                      for r in ct["rows"] if "error" not in r]), ""]
+    from . import field_size, lean_loop  # issue 16: the integration loop and the size of a vector field
+
+    L += lean_loop.section(R.get("lean_loop"))
+    L += field_size.section(R.get("field_size"))
     others = [(p, C.HERE / p) for p in ("STABILITY.md", "CALIBRATION.md", "SWEEP.md")]
     present = [p for p, path in others if path.exists()]
     if present:
@@ -557,7 +561,8 @@ def build(R) -> tuple[str, dict]:
 
 
 def main():
-    names = ("wp_variator", "wp_generic", "overhead", "field_cost", "throughput", "gradients", "compile_time")
+    names = ("wp_variator", "wp_generic", "overhead", "field_cost", "throughput", "gradients", "compile_time",
+             "lean_loop", "field_size")
     R = {k: C.load(k) for k in names}
     C.FIGURES.mkdir(parents=True, exist_ok=True)
     for k in ("wp_variator", "wp_generic"):
