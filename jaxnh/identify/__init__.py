@@ -12,16 +12,25 @@
 * `prepare`, `Problem`, `solve_least_squares`, `statistics` — the pure-JAX
   core, for batched fits under `jax.vmap`.
 * `variator` — the friction variator: `fit_variator(record)`, `report(result)`.
+* Before measuring: `experiment(...)` → `Experiment`, `predict(exp)` →
+  `Prediction` (Fisher information, predicted standard errors, the
+  identifiability diagnosis), `optimal_design(...)` → `DesignResult`
+  (inputs minimising a D-, A- or named-variance criterion within `Limits`:
+  contact force, energy, power); `variator_experiment()` is the embedded
+  record's set-up; `encoder_noise`, `ChannelNoise` the noise model.
 """
 
 from . import variator
 from .data import MIN_SAMPLES, Record, load_default, noise_level, read_csv, write_csv
 from .diagnostics import Identifiability
 from ._fit import FitResult, fit, prepare
+from ._experiment import (ChannelNoise, DesignResult, Experiment, Limits, Prediction, encoder_noise, experiment,
+                          optimal_design, predict, variator_experiment)
 from .problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
 
 __all__ = [
     "fit", "FitResult", "prepare", "Record", "read_csv", "write_csv", "load_default", "noise_level",
     "MIN_SAMPLES", "Identifiability", "Observations", "Problem", "solve_least_squares", "statistics",
-    "value_and_jacobian", "variator",
+    "value_and_jacobian", "variator", "experiment", "Experiment", "predict", "Prediction", "optimal_design",
+    "DesignResult", "Limits", "ChannelNoise", "encoder_noise", "variator_experiment",
 ]

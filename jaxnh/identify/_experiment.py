@@ -42,6 +42,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
@@ -60,7 +61,7 @@ __all__ = [
 ]
 
 CRITERIA = ("D", "A")
-CONSTRAINT_MARGIN = 0.98  # the penalties act from 98 % of a limit, so the optimum keeps to the limit itself
+CONSTRAINT_MARGIN = 0.99  # the penalties act from 99 % of a limit, so the optimum keeps to the limit itself
 PENALTY = 1e3  # weight of a squared relative violation against the criterion (a log, ~1 per factor e)
 
 
@@ -478,7 +479,7 @@ def design_loss(exp: Experiment, criterion: str = "D", *, of=None, limits: Optio
                 penalty: float = PENALTY) -> _Loss:
     """The design objective as a function of a params pytree: the criterion
     plus `penalty` times the squared relative violations of `limits`
-    (counted from 98 % of each limit).
+    (counted from 99 % of each limit).
 
     criterion: "D" — log det of the predicted covariance of the unknowns
     named by `of` (default: all free parameters, in θ units: relative for
@@ -588,8 +589,9 @@ def optimal_design(
         starts: number of starts: the first from `params`, the others from
             its design leaves plus Gaussian noise of standard deviation
             `spread` (seeded by `seed`). The best feasible one is kept.
-        steps, learning_rate: Adam iterations and step size per start
-            (`jaxnh.design.optimize`, forward-mode gradients).
+        steps, learning_rate: Adam iterations and initial step size per start
+            (cosine decay to 5 % of it; `jaxnh.design.optimize`, forward-mode
+            gradients).
 
     Returns:
         A `DesignResult`.
@@ -611,8 +613,10 @@ def optimal_design(
         ok = ev["status"] == 0 and all(ev[k] <= 1.0 for k in ("multiplier", "energy", "power", "std") if k in ev)
         return ok, ev
 
-    best, runs, k_best = multistart(loss, inits, accept=accept, trainable=spec, steps=steps,
-                                    learning_rate=learning_rate, gradient="forward", progress=progress)
+    # Adam with a cosine decay of the step to 5 % at the end: large moves first, then settling on the limits
+    optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
+    best, runs, k_best = multistart(loss, inits, accept=accept, trainable=spec, steps=steps, optimizer=optimizer,
+                                    gradient="forward", progress=progress)
     run = runs[k_best]
     ev = run["evaluation"]
     viol = {k: ev[k] for k in ("multiplier", "energy", "power", "std") if k in ev}
