@@ -195,18 +195,22 @@ def _shooting_check(n: int, shooting: int) -> None:
                            f"use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments")
 
 
-def _progress_printer(path: str):
-    state = {"shown": False}
+class _ProgressPrinter:
+    """Reading progress on stderr, one line rewritten in place (for files above PROGRESS_BYTES)."""
 
-    def show(done, total):
+    def __init__(self, path: str):
+        self.path, self.open = path, False
+
+    def __call__(self, done, total):
         if total:
-            print(f"\r  reading {path}: {100 * done / total:3.0f} % ({done / 1e6:.0f} of {total / 1e6:.0f} MB)",
+            print(f"\r  reading {self.path}: {100 * done / total:3.0f} % ({done / 1e6:.0f} of {total / 1e6:.0f} MB)",
                   end="", file=sys.stderr, flush=True)
-            state["shown"] = True
-            if done >= total:
-                print(file=sys.stderr, flush=True)
+            self.open = True
 
-    return show
+    def close(self):
+        if self.open:
+            print(file=sys.stderr, flush=True)
+            self.open = False
 
 
 def _read(path, coordinates, inputs, args):
@@ -216,14 +220,14 @@ def _read(path, coordinates, inputs, args):
         size = os.path.getsize(path)
     except OSError:
         size = 0
-    progress = _progress_printer(path) if size > PROGRESS_BYTES else None
+    progress = _ProgressPrinter(path) if size > PROGRESS_BYTES else None
     try:
         return read_csv(path, coordinates=coordinates, inputs=inputs,
                         max_samples=MAX_SAMPLES if args.max_samples is None else args.max_samples,
                         every=args.every, progress=progress)
     finally:
         if progress is not None:
-            print(file=sys.stderr, flush=True)
+            progress.close()
 
 
 # --- the command --------------------------------------------------------------------------------
@@ -399,7 +403,11 @@ def _figures(result, record, truth, kind):
     """(file name, Figure) pairs; the figures are closed by the caller."""
     from .plots import plot_fit, plot_ratio
 
-    figs = [("fit_data.png", plot_fit(result, record))]
+    if kind == "variator":
+        figs = [("fit_data.png", plot_fit(result, record, ylabel="angle [rad]", input_label="torque [N·m]",
+                                          title="encoder angles: measured (dots) and fitted simulation (lines)"))]
+    else:
+        figs = [("fit_data.png", plot_fit(result, record))]
     if kind == "variator":
         tr = None
         if truth is not None:
@@ -466,8 +474,8 @@ def estimate_table(result, truth=None) -> str:
             line += f"{true:>10.6g}  {'yes' if inside else 'NO'}"
         return line
 
-    units = {"J1": " kg·m²", "J2": " kg·m²"}
     free = tuple(result.problem.par.names)
+    units = {"J1": " kg·m²", "J2": " kg·m²"} if set(free) == {"J1", "J2", "U21"} else {}  # the variator's
     for k in free:
         v, s = est[k]["value"], est[k]["std"]
         if np.ndim(v) == 0:

@@ -47,7 +47,8 @@ def _check_path_arg(x, name):
                         f"use fig = {name}(...) then fig.savefig({str(x)!r})")
 
 
-def plot_fit(result: FitResult, record=None, *, fig=None, title: str = ""):
+def plot_fit(result: FitResult, record=None, *, fig=None, title: str = "", ylabel: str = "coordinate",
+             input_label: str = "input"):
     """Measured and fitted coordinates, the residuals per channel with ±2σ noise
     lines, and (given the record) the applied inputs.
 
@@ -56,6 +57,8 @@ def plot_fit(result: FitResult, record=None, *, fig=None, title: str = ""):
         record: the fitted `Record`, to draw its inputs (torques, N·m) below.
         fig: a matplotlib Figure to draw into (it is cleared); default a new one.
         title: the top panel's title.
+        ylabel, input_label: axis labels of the coordinates and the inputs
+            (with units, e.g. "angle [rad]", "torque [N·m]").
 
     Returns:
         The matplotlib Figure.
@@ -70,7 +73,7 @@ def plot_fit(result: FitResult, record=None, *, fig=None, title: str = ""):
     for i, c in enumerate(result.observe):
         ax[0].plot(t, result.measured[:, i], ".", ms=2, color=f"C{i}", alpha=0.5, label=f"{c} measured")
         ax[0].plot(t, result.fitted[:, i], "-", lw=1, color="k" if i == 0 else "0.35", label=f"{c} fit")
-    ax[0].set(ylabel="coordinate", title=title or "measured (dots) and fitted simulation (lines)")
+    ax[0].set(ylabel=ylabel, title=title or "measured (dots) and fitted simulation (lines)")
     ax[0].legend(loc="upper left", fontsize=8, ncol=2)
     for i, c in enumerate(result.observe):
         a = ax[1 + i]
@@ -88,7 +91,7 @@ def plot_fit(result: FitResult, record=None, *, fig=None, title: str = ""):
         for j, (name, v) in enumerate(record.inputs.items()):
             a.plot(record.t, v, color=f"C{j + 2}", label=name)
         a.axhline(0, color="k", lw=0.6)
-        a.set(ylabel="input")
+        a.set(ylabel=input_label)
         a.legend(loc="upper left", fontsize=8)
     ax[-1].set(xlabel="t [s]")
     fig.tight_layout()
