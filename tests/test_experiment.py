@@ -199,3 +199,23 @@ def test_fit_of_an_informative_record_converges_cleanly():
     z = (np.asarray([res.estimates["J1"]["value"], res.estimates["J2"]["value"]]) - [truth.J1, truth.J2]) / \
         np.asarray([res.estimates["J1"]["std"], res.estimates["J2"]["std"]])
     assert np.all(np.abs(z) < 3.5)
+
+
+@pytest.mark.slow
+def test_fit_tightens_the_ode_tolerance_for_a_very_precise_record():
+    """Encoders 300× finer than the embedded record's (Gaussian 2 and 4 µrad): at rtol 1e-8 the solver's
+    error is a sizeable fraction of the standard errors, so rtol="auto" must tighten it, converge, and
+    say so; the result must contain the truth."""
+    from jaxnh.identify import load_default
+    from jaxnh.identify.data import Record
+    from jaxnh.identify.variator import fit_variator
+
+    mk = _maker()
+    q = mk.clean_motion()
+    y = q + np.array([2e-6, 4e-6]) * np.random.default_rng(3).standard_normal(q.shape)
+    rec = Record(mk.sample_times(), {"phi1": y[:, 0], "phi2": y[:, 1]}, load_default().inputs, "precise")
+    res = fit_variator(rec)
+    assert res.converged, res.message
+    assert res.problem.rtol < 1e-9 and "ODE rtol tightened" in res.message
+    for k in ("J1", "J2"):
+        assert abs(res.estimates[k]["value"] - mk.TRUTH[k]) < 3.5 * res.estimates[k]["std"]

@@ -527,8 +527,10 @@ def fit(
         opt_name = "optax"
     # The ODE tolerance follows the precision the data demand: tighten it while the solver's own error is
     # not negligible against the standard errors, and continue the fit from where it stopped.
+    first_err = None
     for _ in range(AUTO_REFINEMENTS if auto_rtol else 0):
         err = ode_error_in_std(problem, theta, obs, r, J)
+        first_err = err if first_err is None else first_err
         if err <= ODE_ERROR_STD or problem.rtol <= AUTO_RTOL_MIN:
             break
         factor = max(min(0.5 * ODE_ERROR_STD / err, 0.1), 1e-3)  # error ∝ tolerance; at least 10× tighter
@@ -555,7 +557,9 @@ def fit(
             if J is None:
                 r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
             why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
-        why += f" (ODE rtol tightened to {problem.rtol:.2g}: at the start the solver's error was {err:.2g} standard errors)"
+    if first_err is not None and problem.rtol < AUTO_RTOL_START:
+        why += (f" (ODE rtol tightened to {problem.rtol:.2g}: at rtol {AUTO_RTOL_START:g} the solver's error "
+                f"was {first_err:.2g} standard errors)")
     return _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, opt_name,
                    differentiation, shooting, time.perf_counter() - started, noise_estimated=noise is None)
 
