@@ -18,8 +18,9 @@ Safety. A compilation cache holds native code that JAX loads and runs, so
 anyone who can write into the folder can run code as the user (JAX's own
 documentation says so for `set_cache_dir`). The folder is therefore created
 with mode 0700, and an existing one is used only when it is a real directory
-(not a symbolic link), owned by the current user and not writable by group
-or others; otherwise a `warnings.warn` names the problem and the fix, and no
+(not a symbolic link), owned by the current user, not writable by group or
+others, in a parent folder that others cannot write (unless it has the
+sticky bit, like /tmp); otherwise a `warnings.warn` names the problem and the fix, and no
 cache is used (nothing is read from it).
 
 Only programs whose compilation took at least `MIN_COMPILE_TIME_SECS` are
@@ -74,7 +75,8 @@ def check_cache_dir(path: str) -> str | None:
     """Why `path` must not hold compiled programs, or None when it is safe.
 
     Safe: a directory (not a symbolic link to one), owned by the current user,
-    not writable by group or others. A path that does not exist is "missing"
+    not writable by group or others, whose parent others cannot write (or has
+    the sticky bit). A path that does not exist is "missing"
     (the caller creates it).
     """
     try:
@@ -92,6 +94,20 @@ def check_cache_dir(path: str) -> str | None:
         return f"is owned by another user (uid {st.st_uid}; you are uid {uid})"
     if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
         return f"is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'} (mode {stat.S_IMODE(st.st_mode):04o})"
+    return _check_parent(path)
+
+
+def _check_parent(path: str) -> str | None:
+    """A folder whose parent others can write (without the sticky bit, as /tmp has) can be
+    renamed away and replaced by theirs after it was checked."""
+    parent = os.path.dirname(os.path.abspath(path))
+    try:
+        st = os.stat(parent)
+    except OSError:
+        return None
+    if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not st.st_mode & stat.S_ISVTX:
+        return (f"is in {parent}, which others can write (mode {stat.S_IMODE(st.st_mode):04o}, no sticky bit), "
+                "so it could be replaced by theirs")
     return None
 
 
@@ -100,13 +116,24 @@ def _prepare(path: str) -> str | None:
     why = check_cache_dir(path)
     if why != "missing":
         return why
-    parent = os.path.dirname(path)
+    missing = []  # the folder and its missing ancestors, created 0700 (as the XDG spec asks for ~/.cache)
+    p = path
+    while not os.path.exists(p):
+        missing.append(p)
+        up = os.path.dirname(p)
+        if up == p:
+            break
+        p = up
+    why = _check_parent(missing[-1])  # the existing folder we create into
+    if why is not None:
+        return why
     try:
-        os.makedirs(parent, exist_ok=True)  # ~/.cache and the like: the user's own, usual permissions
-        os.mkdir(path, 0o700)
-        os.chmod(path, 0o700)  # the mode given to mkdir is masked by the umask; make it exact
-    except FileExistsError:
-        pass  # created concurrently (another process): judge what is there now
+        for p in reversed(missing):
+            try:
+                os.mkdir(p, 0o700)
+                os.chmod(p, 0o700)  # the mode given to mkdir is masked by the umask; make it exact
+            except FileExistsError:
+                pass  # created concurrently (another process): judged below
     except OSError as e:
         return f"cannot be created ({e.strerror})"
     why = check_cache_dir(path)

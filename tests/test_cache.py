@@ -48,7 +48,7 @@ def test_created_private_even_under_umask_000(tmp_path, clean_jax_cache_config):
     finally:
         os.umask(old)
     assert path == str(tmp_path / "deep" / "c")
-    assert mode(path) == 0o700
+    assert mode(path) == 0o700 and mode(tmp_path / "deep") == 0o700  # missing ancestors too (XDG: 0700)
     assert jax.config.jax_compilation_cache_dir == path
     # small programs are cached too: the write threshold is lowered from JAX's 1 s
     assert jax.config.jax_persistent_cache_min_compile_time_secs == MIN_COMPILE_TIME_SECS
@@ -109,6 +109,19 @@ def test_symlink_is_refused(tmp_path, clean_jax_cache_config):
     link = tmp_path / "c"
     link.symlink_to(real)
     refused(tmp_path, link, "symbolic link")
+
+
+@pytest.mark.parametrize("sticky", [False, True])
+def test_parent_writable_by_others(tmp_path, clean_jax_cache_config, sticky):
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o777 | (stat.S_ISVTX if sticky else 0))
+    if sticky:  # like /tmp: others cannot rename our folder away
+        assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(shared / "c")}) == str(shared / "c")
+        assert mode(shared / "c") == 0o700
+    else:
+        refused(tmp_path, shared / "c", "which others can write")
+        assert not (shared / "c").exists()
 
 
 def test_a_file_is_refused_and_an_uncreatable_folder_warns(tmp_path, clean_jax_cache_config):
