@@ -102,6 +102,8 @@ class Tableau:
         error: `error(fs, h) -> err` local error estimate from the stages
             fs = {1..s+1: f_j} (fs[s+1] = f(t1, y1)).
         evals_per_step: vector-field evaluations of one step attempt (FSAL: s).
+        dense_evals: extra evaluations the continuous extension needs per step (made
+            only in steps that contain a report time).
         dense_prepare: `(vf, t0, h, y0, y1, fs, args) -> (coeffs, extra_evals)`:
             what the continuous extension needs for one step.
         dense_eval: `(coeffs, y0, s) -> y(t0 + s h)`, s in [0, 1].
@@ -115,6 +117,7 @@ class Tableau:
     b: dict
     error: Callable
     evals_per_step: int
+    dense_evals: int
     dense_prepare: Callable
     dense_eval: Callable
 
@@ -159,7 +162,7 @@ def _t5_dense_eval(ks, y0, s):
 
 TSIT5 = Tableau(
     name="tsit5", order=5, error_order=5, c=tuple(_S._T5_C[:6]), a=_S._T5_A, b=_S._T5_B,
-    error=_t5_error, evals_per_step=6, dense_prepare=_t5_dense_prepare, dense_eval=_t5_dense_eval,
+    error=_t5_error, evals_per_step=6, dense_evals=0, dense_prepare=_t5_dense_prepare, dense_eval=_t5_dense_eval,
 )
 """Tsitouras' 5(4) pair (Comput. Math. Appl. 62 (2011) 770), as `jaxnh.solvers.Tsit5`."""
 
@@ -194,7 +197,7 @@ def _dop853_dense_eval(r, y0, s):
 
 DOP853 = Tableau(
     name="dop853", order=8, error_order=8, c=tuple(_S._C[:12]), a={i: _S._A[i] for i in range(2, 13)}, b=_S._B,
-    error=_dop853_error, evals_per_step=12, dense_prepare=_dop853_dense_prepare, dense_eval=_dop853_dense_eval,
+    error=_dop853_error, evals_per_step=12, dense_evals=3, dense_prepare=_dop853_dense_prepare, dense_eval=_dop853_dense_eval,
 )
 """Dormand–Prince 8(5,3) with Hairer's error estimate and 7th-order dense output (Hairer,
 Nørsett & Wanner, Solving ODEs I, 2nd ed., §II.10), as `jaxnh.solvers.DOP853`."""
@@ -223,6 +226,12 @@ def _any(x):
     return eqxi.unvmap_any(x)
 
 
+# In report="interpolate" mode a step never contains more than this many report times
+# strictly inside it (it is clipped to the next one after them): reports are written
+# straight-line. Report times denser than this per natural step cost extra steps.
+_INTERIOR_REPORTS = 2
+
+
 class _Carry(NamedTuple):
     t: Any
     y: Any
@@ -238,7 +247,7 @@ class _Carry(NamedTuple):
 
 
 def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e-10, max_steps=100_000, dt0=None,
-               norm=None, pre_step=None, post_step=None, report="interpolate", pcoeff=0.0, icoeff=1.0,
+               norm=None, pre_step=None, post_step=None, report="step", pcoeff=0.0, icoeff=1.0,
                safety=0.9, factormin=0.2, factormax=10.0) -> LeanSolution:
     """Integrate dy/dt = vector_field(t, y, args) from ts[0] and report y at the times ts.
 
@@ -273,12 +282,17 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
             f(t1, y1_new) is evaluated again. Report times inside a step are
             interpolated from the step's own stages (unprojected); a report time
             that a step ends on gets y1_new.
-        report: "interpolate" (steps are chosen by the error control alone; report
-            times inside a step are filled by the method's continuous extension:
-            Tsit5's 4th-degree polynomial, free; DOP853's 7th-order one, 3 more
-            evaluations in steps that contain a report time) or "step" (every
-            report time is a step end; the controller's step size is kept across
-            such clipped steps).
+        report: "step" (default: every report time is a step end; the
+            controller's step size is kept across such clipped steps) or
+            "interpolate" (report times inside a step are filled by the method's
+            continuous extension: Tsit5's 4th-degree polynomial, free; DOP853's
+            7th-order one, 3 more evaluations in steps that contain a report time;
+            a step holds at most 2 report times strictly inside it). Measured
+            (benchmarks/lean_loop.py, variator, 101 report times over ~80 natural
+            DOP853 steps): "step" was faster for one trajectory and for a vmap
+            batch, and more accurate with Tsit5 (whose interpolant is of lower
+            order than its steps); "interpolate" wins when report times are much
+            denser than the natural steps (see the report-density table there).
         pcoeff, icoeff, safety, factormin, factormax: PI controller as
             `diffrax.PIDController` (same defaults: integral control, 0.9, 0.2, 10).
 
@@ -354,14 +368,17 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
             f = lax.cond(_any(jumped), lambda: jnp.where(jumped, vf(t, y_new, args), f), lambda: f)
             n_evals = n_evals + jumped.astype(jnp.int32)
             y = y_new
-        target = ts[c.k] if report == "step" else t_end
+        if report == "step":
+            target = ts[c.k]
+        else:  # the end, or the report time after the next _INTERIOR_REPORTS ones
+            target = ts[jnp.minimum(c.k + _INTERIOR_REPORTS, r - 1)]
         t1 = t + c.dt
         clipped = t1 > floor(target)
         t1 = jnp.where(clipped, target, t1)
         h = t1 - t
         y1, f1, err, fs = tab.step(vf, t, h, y, f, args)
         n_evals = n_evals + tab.evals_per_step
-        reject = False
+        reject = jnp.zeros((), bool)
         if post_step is not None:
             y1p, extra, reject = post_step(t, y, t1, y1, args)
             y1p = jnp.asarray(y1p).astype(dtype)
@@ -396,36 +413,35 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
         inv_keep = jnp.where((inv == 0) | jnp.isinf(inv), 1, inv)
         inv_prev = jnp.where(accept, inv_keep, c.inv_prev)
 
-        # reports
+        # reports (one row written at a time: no select over the whole output buffer)
         ys_out, k = c.ys, c.k
         if report == "step":
             hit = accept & clipped
-            ys_out = jnp.where(hit, ys_out.at[k].set(y1_end), ys_out)
+            kk = jnp.minimum(k, r - 1)
+            ys_out = ys_out.at[kk].set(jnp.where(hit, y1_end, ys_out[kk]))
             k = jnp.where(hit, k + 1, k)
         else:
-            need = accept & (ts[k] <= t1)
+            # at most _INTERIOR_REPORTS report times lie strictly inside a step (see `target`): they are
+            # written straight-line, without an inner loop (which under vmap would select the whole
+            # output buffer on every iteration)
+            need = accept & (ts[jnp.minimum(k, r - 1)] <= t1) & (k < r)
+            if tab.dense_evals:
+                def prep():
+                    return tab.dense_prepare(vf, t, h, y, y1, fs, args)[0]
 
-            def fill(args_):
-                ys_f, k_f = args_
-                coeffs, extra_evals = tab.dense_prepare(vf, t, h, y, y1, fs, args)
-                hh = jnp.where(h == 0, 1, h)
-
-                def fcond(kc):
-                    return (kc[1] < r) & (ts[jnp.minimum(kc[1], r - 1)] <= t1)
-
-                def fbody(kc):
-                    ys_i, k_i = kc
-                    tk = ts[k_i]
-                    yk = jnp.where(tk == t1, y1_end, tab.dense_eval(coeffs, y, (tk - t) / hh))
-                    return ys_i.at[k_i].set(yk), k_i + 1
-
-                ys_f, k_f = lax.while_loop(fcond, fbody, (ys_f, k_f))
-                return ys_f, k_f, jnp.int32(extra_evals)
-
-            ys_new, k_new, extra_n = lax.cond(_any(need), fill, lambda a_: (*a_, jnp.int32(0)), (ys_out, k))
-            ys_out = jnp.where(need, ys_new, ys_out)
-            k = jnp.where(need, k_new, k)
-            n_evals = n_evals + jnp.where(need, extra_n, 0)
+                shape = jax.eval_shape(prep)
+                coeffs = lax.cond(_any(need), prep, lambda: jnp.zeros(shape.shape, shape.dtype))
+                n_evals = n_evals + jnp.where(need, tab.dense_evals, 0)
+            else:
+                coeffs = tab.dense_prepare(vf, t, h, y, y1, fs, args)[0]
+            hh = jnp.where(h == 0, 1, h)
+            for _ in range(_INTERIOR_REPORTS + 1):
+                kk = jnp.minimum(k, r - 1)
+                tk = ts[kk]
+                valid = accept & (k < r) & (tk <= t1)
+                yk = jnp.where(tk == t1, y1_end, tab.dense_eval(coeffs, y, (tk - t) / hh))
+                ys_out = ys_out.at[kk].set(jnp.where(valid, yk, ys_out[kk]))
+                k = k + valid.astype(jnp.int32)
 
         n_steps = c.n_steps + 1
         underflow = ~accept & ((t + dt_next <= t) | ~jnp.isfinite(dt_next))
