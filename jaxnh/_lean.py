@@ -408,8 +408,8 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
         if post_step is not None:
             factor = jnp.where(reject, jnp.minimum(factor, 0.5), factor)
         dt_next = (h * factor).astype(dtype)
-        if report == "step":
-            dt_next = jnp.where(clipped & accept, jnp.maximum(dt_next, c.dt), dt_next)
+        # a step shortened to land on a report time (or the end) does not shrink the next one
+        dt_next = jnp.where(clipped & accept, jnp.maximum(dt_next, c.dt), dt_next)
         inv_keep = jnp.where((inv == 0) | jnp.isinf(inv), 1, inv)
         inv_prev = jnp.where(accept, inv_keep, c.inv_prev)
 

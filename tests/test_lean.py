@@ -149,6 +149,21 @@ def test_exponential_jvp_and_vmap():
     assert np.all(np.asarray(b.status) == 0)
 
 
+@pytest.mark.parametrize("report", ["interpolate", "step"])
+def test_repeated_and_single_report_times(report):
+    ts = jnp.array([0.0, 0.0, 0.5, 0.5, 0.5, 0.5, 1.0, 1.0])
+
+    def f(t, y, a):
+        return -y
+
+    s = lean_solve(f, jnp.array([1.0]), None, ts, method="tsit5", rtol=1e-10, atol=1e-12, report=report)
+    assert int(s.status) == 0
+    np.testing.assert_allclose(s.ys[:, 0], np.exp(-np.asarray(ts)), rtol=1e-9)
+    one = lean_solve(f, jnp.array([1.0]), None, jnp.array([0.3]), report=report)
+    assert int(one.status) == 0 and int(one.stats["num_steps"]) == 0
+    np.testing.assert_array_equal(one.ys, [[1.0]])
+
+
 def test_float32():
     ts = jnp.linspace(0.0, 10.0, 11, dtype=jnp.float32)
     s = jax.jit(lambda y0: lean_solve(oscillator, y0, jnp.float32(4.0), ts, rtol=1e-5, atol=1e-7))(
