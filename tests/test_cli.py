@@ -242,10 +242,16 @@ def test_dict_spec_and_to_dict(fitted, tmp_path):
     import jaxnh as nh
     from jaxnh.identify import read_csv
 
+    pd = pytest.importorskip("pandas")
+    from jaxnh.identify import Record
+
     d, _ = fitted
-    rec = read_csv(d / "d.csv", coordinates=("a", "b"), inputs=("F",))
-    r = nh.fit(cli_model.MECH, cli_model.params(rec), rec, free=("J1", "c"), positive=("J1", "c"), observe=("a", "b"),
-               rtol=1e-8, shooting=1, max_iterations=100, progress=False)
+    rec = Record.from_dataframe(pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"],
+                                inputs=["F"])
+    np.testing.assert_array_equal(rec.t, read_csv(d / "d.csv", coordinates=("a", "b"), inputs=("F",)).t)
+    kw = dict(free=("J1", "c"), positive=("J1", "c"), observe=("a", "b"), rtol=1e-8, shooting=1, max_iterations=100,
+              progress=False)
+    r = nh.fit(cli_model.MECH, cli_model.params(rec), rec, **kw)
     dd = r.to_dict(arrays=True)
     text = json.dumps(dd, allow_nan=False)
     back = json.loads(text)
@@ -262,6 +268,18 @@ def test_dict_spec_and_to_dict(fitted, tmp_path):
     dd = json.loads(json.dumps(bad.to_dict(), allow_nan=False))
     assert dd["status"] == "non_finite" and dd["ok"] is False
     assert dd["values"][0] is None and dd["std"][0] is None
+    # the record's own noise levels are used when fit gets no noise=
+    rec_s = Record.from_dataframe(pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"],
+                                  inputs=["F"], sigma=2e-4)
+    r2 = nh.fit(cli_model.MECH, cli_model.params(rec_s), rec_s, **kw)
+    assert r2.noise == {"a": 2e-4, "b": 2e-4} and r2.converged
+    # plots draw into a given Figure and return it
+    from matplotlib.figure import Figure
+
+    from jaxnh.identify.plots import plot_fit
+
+    fig = Figure()
+    assert plot_fit(r, rec, fig=fig) is fig and len(fig.axes) == 4  # angles, 2 residual panels, the input
 
 
 def test_overflowing_record_is_bad_input(tmp_path, capsys, no_fit):
@@ -269,7 +287,7 @@ def test_overflowing_record_is_bad_input(tmp_path, capsys, no_fit):
     data.write_text(cli_model.record_text(scale=1e300))
     code, out, err = run(["fit", str(data), "--model", MODEL, "--json", str(tmp_path / "o.json"), "--quiet"],
                          capsys)
-    assert_bad_input(code, err, r"column 'a' has values up to 1.\d+e\+300 in magnitude; .* other units")
+    assert_bad_input(code, err, r"column 'a' has values up to \d\.\d+e\+300 in magnitude; .* other units")
     assert listing(tmp_path) == ["d.csv"]
 
 

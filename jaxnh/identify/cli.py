@@ -331,23 +331,15 @@ def run_fit(args) -> int:
             result = _fit(plan, args, noise)
     except (BadInput, ModelError) as e:
         return _bad(e)
-    except ValueError as e:  # an argument check inside fit: still bad input
-        return _bad(e)
+    except ValueError as e:
+        if not isinstance(e, (np.linalg.LinAlgError, FloatingPointError)):  # numerical breakdown: the fit failed
+            return _bad(e)  # an argument check inside fit: still bad input
+        return _failed(e, args, plan)
     except KeyboardInterrupt:
         print("\njaxnh fit: interrupted; nothing written", file=sys.stderr)
         return 130
     except Exception as e:  # the solver or optimiser broke down: the fit failed
-        if os.environ.get("JAXNH_DEBUG"):
-            raise
-        msg = f"{type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}"
-        print(f"jaxnh fit: the fit failed: {msg} (JAXNH_DEBUG=1 shows the traceback)", file=sys.stderr)
-        rep = {"status": "error", "ok": False, "message": f"the fit failed: {msg}", "model": args.model,
-               "data": plan.source}
-        try:
-            _write_json(rep, args.json)
-        except OSError as e2:
-            print(f"jaxnh fit: could not write {args.json}: {e2}", file=sys.stderr)
-        return EXIT_FAILED
+        return _failed(e, args, plan)
     truth = None
     try:
         rep = _print_and_write(result, plan.source, args.json, args.out, record, truth, model=args.model,
@@ -358,6 +350,22 @@ def run_fit(args) -> int:
     if rep["status"] != "fitted":
         print(f"  status: {rep['status']} — exit status 1 (the fit failed)")
     return EXIT_FITTED if rep["status"] == "fitted" else EXIT_FAILED
+
+
+def _failed(e, args, plan) -> int:
+    """The fit raised: say so in one line (JAXNH_DEBUG=1 re-raises), write a JSON saying so, exit 1."""
+    if os.environ.get("JAXNH_DEBUG"):
+        raise e
+    first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+    msg = f"{type(e).__name__}: {first}"
+    print(f"jaxnh fit: the fit failed: {msg} (JAXNH_DEBUG=1 shows the traceback)", file=sys.stderr)
+    rep = {"status": "error", "ok": False, "message": f"the fit failed: {msg}", "model": args.model,
+           "data": plan.source}
+    try:
+        _write_json(rep, args.json)
+    except OSError as e2:
+        print(f"jaxnh fit: could not write {args.json}: {e2}", file=sys.stderr)
+    return EXIT_FAILED
 
 
 def _bad(e) -> int:
