@@ -41,8 +41,8 @@ __all__ = ["LeanSolution", "Tableau", "TSIT5", "DOP853", "STATUS_MESSAGES", "lea
 STATUS_MESSAGES = {
     0: "success: every report time was reached",
     1: "max_steps reached before the last report time (step attempts, accepted or rejected, hit max_steps)",
-    2: ("step size underflow: after a rejected step the next step could not advance t in floating point, or the "
-        "step size became non-finite. Almost always a non-finite value (NaN/inf) in the vector field or the "
+    2: ("step size underflow: the step size became too small to advance t in floating point (after a "
+        "rejection, or for an attempt itself), or non-finite. Almost always a non-finite value (NaN/inf) in the vector field or the "
         "state, which makes every attempt fail; otherwise a singularity or a tolerance below rounding."),
 }
 
@@ -444,7 +444,11 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
                 k = k + valid.astype(jnp.int32)
 
         n_steps = c.n_steps + 1
-        underflow = ~accept & ((t + dt_next <= t) | ~jnp.isfinite(dt_next))
+        # the step cannot advance t: after a rejection the next step would not move t, or this
+        # attempt itself did not (t + dt == t without landing on a report time)
+        # (or a rejected step onto a report time within ~100 ulp, which would be attempted unchanged)
+        underflow = ((~accept & ((t + dt_next <= t) | ~jnp.isfinite(dt_next) | (t + dt_next > floor(target))))
+                     | ((h <= 0) & ~clipped))
         status = jnp.where(underflow, 2, 0).astype(jnp.int32)
         return _Carry(
             t=jnp.where(accept, t1, t), y=jnp.where(accept, y1_end, y), f=jnp.where(accept, f1, f),
