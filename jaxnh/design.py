@@ -245,8 +245,9 @@ def multistart(
             ok, ev = accept(p)
         runs.append({"params": p, "history": hist, "accepted": bool(ok), "evaluation": ev})
         if progress:
-            print(f"  start {i}: loss {hist[0]:.5g} -> {hist[-1]:.5g}, value {ev['value']:.5g}, "
-                  f"{'acceptable' if ok else 'NOT acceptable'}", flush=True)
+            more = ", ".join(f"{k} {v:.4g}" for k, v in ev.items() if k != "value" and isinstance(v, float))
+            print(f"  start {i}: loss {hist[0]:.5g} -> {hist[-1]:.5g}, value {ev['value']:.5g}"
+                  f"{' (' + more + ')' if more else ''}, {'acceptable' if ok else 'NOT acceptable'}", flush=True)
     pool = [i for i, r in enumerate(runs) if r["accepted"]] or list(range(len(runs)))
     k = min(pool, key=lambda i: runs[i]["evaluation"]["value"])
     return runs[k]["params"], runs, k

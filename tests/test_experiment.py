@@ -219,3 +219,27 @@ def test_fit_tightens_the_ode_tolerance_for_a_very_precise_record():
     assert res.problem.rtol < 1e-9 and "ODE rtol tightened" in res.message
     for k in ("J1", "J2"):
         assert abs(res.estimates[k]["value"] - mk.TRUTH[k]) < 3.5 * res.estimates[k]["std"]
+
+
+def test_multistart_keeps_the_best_acceptable_start_and_forward_gradients_agree():
+    """Two minima of a double well, (x ∓ 1)², −0.5 deeper at x = +1; only x < 0 is acceptable."""
+    import optax
+
+    from jaxnh.design import multistart, optimize
+
+    def loss(p):
+        x = p["x"][0]
+        return jnp.minimum((x - 1.0) ** 2 - 0.5, (x + 1.0) ** 2)
+
+    starts = [{"x": jnp.array([0.8])}, {"x": jnp.array([-0.7])}, {"x": jnp.array([-1.3])}]
+    best, runs, k = multistart(loss, starts, accept=lambda p: (float(p["x"][0]) < 0, {"value": float(loss(p))}),
+                               steps=200, learning_rate=0.05)
+    assert [r["accepted"] for r in runs] == [False, True, True]
+    assert k in (1, 2) and abs(float(best["x"][0]) + 1.0) < 1e-3
+    # without the constraint the deeper well wins
+    best, _, k = multistart(loss, starts, steps=200, learning_rate=0.05)
+    assert k == 0 and abs(float(best["x"][0]) - 1.0) < 1e-3
+    # forward- and reverse-mode gradients give the same optimisation
+    a, ha = optimize(loss, starts[1], optimizer=optax.adam(0.05), steps=30, gradient="forward")
+    b, hb = optimize(loss, starts[1], optimizer=optax.adam(0.05), steps=30, gradient="reverse")
+    np.testing.assert_allclose(ha, hb, rtol=1e-12)

@@ -4,10 +4,11 @@
                  [--harmonics K] [--starts N] [--steps N] [--m1-max X] [--m2-max X]
                  [--lambda-max X] [--energy-max E] [--power-max P] [--no-keep] [--seed S] [--quiet]
 
-With the embedded record's set-up (6 s at 250 Hz, its two encoders, its load
-torque M2, the true J1, J2, U21(t) as nominal values, phi1'(0) = 4 rad/s) it
-chooses the motor torque M1(t) — a Fourier series of period = the duration,
-bounded by |M1| ≤ --m1-max (default: the record's largest |M1|) — that
+With the embedded record's set-up (6 s at 250 Hz, its two encoders, its
+nominal values J1, J2, U21(t), phi1'(0) = 4 rad/s) it
+chooses the motor and load torques M1(t), M2(t) — Fourier series of period =
+the duration, bounded by |M1| ≤ --m1-max and |M2| ≤ --m2-max (default: the
+record's largest |M1| and |M2|) — that
 minimises the predicted variance of J1 (default `--criterion A --of J1`)
 while the contact force stays within |λ| ≤ --lambda-max (default: the largest
 |λ| of the embedded experiment) and, unless --no-keep, J2 and every U21 knot
@@ -56,12 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="A: log of the summed relative variances of --of (default); D: log det of their covariance")
     p.add_argument("--of", nargs="+", default=["J1"], metavar="NAME",
                    help="parameters whose precision to optimise: J1, J2, U21 (all knots) or U21[k] (default J1)")
-    p.add_argument("--inputs", nargs="+", default=["M1"], choices=("M1", "M2"),
-                   help="torques to design (default M1; M2 keeps the record's load torque otherwise)")
-    p.add_argument("--harmonics", type=int, default=8,
-                   help="Fourier harmonics of each designed torque over the duration (default 8: up to 1.33 Hz)")
-    p.add_argument("--starts", type=int, default=4, help="optimisation starts; the best feasible is kept (default 4)")
-    p.add_argument("--steps", type=int, default=300, help="Adam steps per start (default 300)")
+    p.add_argument("--inputs", nargs="+", default=["M1", "M2"], choices=("M1", "M2"),
+                   help="torques to design (default both; one not designed keeps the record's)")
+    p.add_argument("--harmonics", type=int, default=12,
+                   help="Fourier harmonics of each designed torque over the duration (default 12: up to 2 Hz)")
+    p.add_argument("--starts", type=int, default=3, help="optimisation starts; the best feasible is kept (default 3)")
+    p.add_argument("--steps", type=int, default=400, help="Adam steps per start (default 400)")
     p.add_argument("--learning-rate", type=float, default=0.1, help="Adam step size (default 0.1)")
     p.add_argument("--m1-max", type=float, default=None,
                    help="bound on |M1|, N·m (default: the embedded record's largest |M1|)")
@@ -194,19 +195,22 @@ def _run(args, files) -> int:
     K = args.harmonics
     rng = np.random.default_rng(args.seed)
 
-    def law(bound):
-        return Bounded(Fourier(0.0, cos=0.5 * rng.standard_normal(K), sin=0.5 * rng.standard_normal(K),
+    def law(bound, mean):
+        # start near the record's mean torque with small random harmonics (a constant law is a degenerate
+        # start: see jaxnh.design); the other starts add Gaussian noise of 0.3 to every coefficient
+        inner_mean = float(Bounded.inverse(np.clip(mean, -0.9 * bound, 0.9 * bound), -bound, bound))
+        return Bounded(Fourier(inner_mean, cos=0.3 * rng.standard_normal(K), sin=0.3 * rng.standard_normal(K),
                                period=duration), -bound, bound)
 
-    M1 = law(m1_max) if "M1" in args.inputs else base_params.M1
-    M2 = law(m2_max) if "M2" in args.inputs else base_params.M2
+    M1 = law(m1_max, np.mean(record.inputs["M1"])) if "M1" in args.inputs else base_params.M1
+    M2 = law(m2_max, np.mean(record.inputs["M2"])) if "M2" in args.inputs else base_params.M2
     start = V.VariatorParams(base_params.J1, base_params.J2, base_params.U21, M1, M2)
     _say(args, f"  designing {', '.join(args.inputs)}: {args.criterion}-criterion on {', '.join(args.of)}; "
          f"|M1| ≤ {m1_max:.4g} N·m" + (f", |M2| ≤ {m2_max:.4g} N·m" if "M2" in args.inputs else "")
          + f", |λ| ≤ {lam_max:.4g} N·m" + (", J2 and U21 knots no worse than the baseline" if keep else "")
          + f"; {args.starts} starts × {args.steps} Adam steps (the first call compiles)")
     res = optimal_design(exp, start, args.inputs, args.criterion, of=args.of, limits=limits, starts=args.starts,
-                         steps=args.steps, learning_rate=args.learning_rate, spread=1.0, seed=args.seed,
+                         steps=args.steps, learning_rate=args.learning_rate, spread=0.3, seed=args.seed,
                          progress=not args.quiet)
     # what a fit will see: the designed torques sampled at the record's times (cubic spline between samples)
     tj = jnp.asarray(t)
