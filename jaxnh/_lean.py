@@ -28,6 +28,7 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.lax as lax
@@ -61,12 +62,14 @@ class LeanSolution(NamedTuple):
             including the initial-step selection, dense-output stages and the
             re-evaluations after `pre_step`/`post_step` changed the state).
         t_final: time the integration reached (ts[-1] on success; where it stopped otherwise).
+        y_final: the state at `t_final` (n,): where a failed solve stalled, for its diagnosis.
     """
 
     ys: jax.Array
     status: jax.Array
     stats: dict
     t_final: jax.Array = None
+    y_final: jax.Array = None
 
 
 # Exported programs (`jax.export`) that return a LeanSolution can be serialised.
@@ -322,6 +325,9 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
     t0, t_end = ts[0], ts[-1]
     eps = jnp.finfo(dtype).eps
 
+    # One traced and lowered sub-computation shared by every stage (as jaxnh.solvers does): the
+    # unrolled stages would otherwise trace and lower the vector field once each.
+    @eqx.filter_jit
     def vf(t, y, a):
         return jnp.asarray(vector_field(t, y, a)).astype(dtype)
 
@@ -460,4 +466,4 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
     status = jnp.where((out.status == 0) & (out.k < r), 1, out.status).astype(jnp.int32)  # ran out of steps
     stats = dict(num_steps=out.n_steps, num_accepted_steps=out.n_acc, num_rejected_steps=out.n_steps - out.n_acc,
                  rhs_evaluations=out.n_evals)
-    return LeanSolution(ys=out.ys, status=status, stats=stats, t_final=out.t)
+    return LeanSolution(ys=out.ys, status=status, stats=stats, t_final=out.t, y_final=out.y)
