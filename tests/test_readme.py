@@ -3,11 +3,11 @@
 import pathlib
 import re
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxnh.models import variator as V
 from jaxnh.profiles import Fourier
+
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 
