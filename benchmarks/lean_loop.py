@@ -190,7 +190,7 @@ def numba_solver():
         out[2] = (par[2] + U * par[3] - par[1] * U * dU * w) / (par[0] + par[1] * U * U)
 
     @numba.njit(cache=False, fastmath=False)
-    def solve(A, b, c, e1, e2, kind, q, y0, ts, rtol, atol, par, cs, sn, kk):
+    def solve(ptr, col, val, b, c, e1, e2, kind, q, y0, ts, rtol, atol, par, cs, sn, kk):
         n, s, r = y0.size, c.size, ts.size
         K = np.empty((s + 1, n))
         ys = np.zeros((r, n))
@@ -210,8 +210,8 @@ def numba_solver():
             for i in range(1, s):
                 for j in range(n):
                     acc = 0.0
-                    for l in range(i):
-                        acc += A[i, l] * K[l, j]
+                    for m in range(ptr[i], ptr[i + 1]):  # nonzero a_il only
+                        acc += val[m] * K[col[m], j]
                     tmp[j] = y[j] + h * acc
                 rhs(t + c[i] * h, tmp, K[i], par, cs, sn, kk)
             for j in range(n):
@@ -259,10 +259,18 @@ def numba_solver():
         for i, row in T["a"].items():
             for j, v in row.items():
                 A[i - 1, j - 1] = v
+        ptr, col, val = [0], [], []  # the stage matrix in compressed rows (its zeros skipped)
+        for i in range(s):
+            for j in range(i):
+                if A[i, j] != 0.0:
+                    col.append(j)
+                    val.append(A[i, j])
+            ptr.append(len(col))
         b = np.array([T["b"].get(j, 0.0) for j in range(1, s + 1)])
         e1 = np.array([T["e"].get(j, 0.0) for j in range(1, s + 2)])
         e2 = np.array([T.get("e3", {}).get(j, 0.0) for j in range(1, s + 2)])
-        return A, b, np.asarray(T["c"], float), e1, e2, 1 if tab == "dop853" else 0, float(T["q"])
+        return (np.asarray(ptr, np.int64), np.asarray(col, np.int64), np.asarray(val, float), b,
+                np.asarray(T["c"], float), e1, e2, 1 if tab == "dop853" else 0, float(T["q"]))
 
     mats = {tab: dense(tab) for tab in TABLEAUS}
 
