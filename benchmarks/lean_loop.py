@@ -570,11 +570,39 @@ def section(R: dict | None) -> list:
     return L
 
 
+def controllers() -> list:
+    """Steps to reach error 1e-8 (and 1e-6) on the case for integral control (diffrax's default,
+    pcoeff = 0, icoeff = 1) and two PI settings, lean loop with the interpolant."""
+    ref = reference()
+    rows = []
+    for tab in ("tsit5", "dop853"):
+        for pc, ic in ((0.0, 1.0), (0.3, 0.4), (0.2, 0.3)):
+            f = jax.jit(lambda w0, rtol, pc=pc, ic=ic, tab=tab: lean_solve(
+                eq9, y0_of(w0), P, TS, method=tab, rtol=rtol, atol=rtol / 100, report="interpolate", pcoeff=pc,
+                icoeff=ic))
+            row = dict(method=tab, pcoeff=pc, icoeff=ic)
+            for target in (1e-6, 1e-8):
+                for rtol in GRID:
+                    s = f(C.f64(W0), C.f64(rtol))
+                    err = error_of(s.ys, ref)
+                    if err <= target:
+                        row[f"steps@{target:g}"] = int(s.stats["num_steps"])
+                        row[f"rejected@{target:g}"] = int(s.stats["num_rejected_steps"])
+                        break
+            rows.append(row)
+            C.log(row)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer rounds, no diffrax Dopri8")
     ap.add_argument("--fixed-cost", help=argparse.SUPPRESS)
+    ap.add_argument("--controllers", action="store_true", help="only compare integral and PI step control (steps)")
     a = ap.parse_args(argv)
+    if a.controllers:
+        controllers()
+        return
     if a.fixed_cost:
         print(json.dumps(fixed_cost(a.fixed_cost)))
         return
