@@ -10,8 +10,10 @@ Also `jaxnh fit` on the embedded record, cold and warm.
 
     python benchmarks/cache_effect.py [--repeats 3] [--fit]
 
-Prints medians (s) and the number of cache entries written; times are wall
-clock of the whole process's measured section (import + first call).
+Prints medians (s) and the number of cache entries written: "cold"/"warm" are
+the wall clock of import + first call, "first call" the part after the import
+(the import itself does not depend on the cache). Cases are interleaved
+within each repeat, so a change of machine load hits all of them alike.
 """
 
 from __future__ import annotations
@@ -80,29 +82,36 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fit", action="store_true", help="also time `jaxnh fit` cold and warm")
+    ap.add_argument("--eqx", nargs="+", default=["default", "nan"], help="EQX_ON_ERROR values to try")
+    ap.add_argument("--min", nargs="+", default=["1.0", "default", "0"],
+                    help="write thresholds to try (s; 'default' = jaxnh's MIN_COMPILE_TIME_SECS)")
+    ap.add_argument("--no-off", action="store_true", help="skip the cache-off case")
     args = ap.parse_args()
-    rows = []
-    for eqx_mode in ("default", "nan"):
-        for min_t in ("1.0", "default", "0"):
-            cold, warm, imp, n_entries = [], [], [], []
-            for _ in range(args.repeats):
-                with tempfile.TemporaryDirectory() as d:
-                    env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
-                    if min_t != "default":
-                        env["BENCH_MIN"] = min_t
-                    if eqx_mode == "nan":
-                        env["EQX_ON_ERROR"] = "nan"
-                    r = run_user(env)
-                    cold.append(r["total"])
-                    n_entries.append(entries(os.path.join(d, "c")))
-                    r = run_user(env)
-                    warm.append(r["total"])
-                    imp.append(r["import"])
-            rows.append((eqx_mode, min_t, statistics.median(cold), statistics.median(warm), statistics.median(imp),
-                         statistics.median(n_entries)))
-            print(f"EQX_ON_ERROR={eqx_mode:<8} min_compile_time={min_t:<8} cold {rows[-1][2]:6.2f} s  "
-                  f"warm {rows[-1][3]:6.2f} s  (import {rows[-1][4]:.2f} s)  entries {rows[-1][5]}", flush=True)
-    with tempfile.TemporaryDirectory() as d:
+    cases = [(e, m) for e in args.eqx for m in args.min]
+    res = {c: {"cold": [], "warm": [], "cold_call": [], "warm_call": [], "entries": []} for c in cases}
+    for _ in range(args.repeats):  # cases interleaved within each repeat, so a change of load hits all alike
+        for eqx_mode, min_t in cases:
+            r = res[(eqx_mode, min_t)]
+            with tempfile.TemporaryDirectory() as d:
+                env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
+                if min_t != "default":
+                    env["BENCH_MIN"] = min_t
+                if eqx_mode == "nan":
+                    env["EQX_ON_ERROR"] = "nan"
+                c = run_user(env)
+                r["entries"].append(entries(os.path.join(d, "c")))
+                w = run_user(env)
+                r["cold"].append(c["total"])
+                r["warm"].append(w["total"])
+                r["cold_call"].append(c["total"] - c["import"])
+                r["warm_call"].append(w["total"] - w["import"])
+    med = statistics.median
+    print(f"{'EQX_ON_ERROR':<14}{'min_compile_time':<18}{'cold':>8}{'warm':>8}{'first call cold':>17}"
+          f"{'first call warm':>17}{'entries':>9}   (s, medians of {args.repeats})")
+    for (eqx_mode, min_t), r in res.items():
+        print(f"{eqx_mode:<14}{min_t:<18}{med(r['cold']):8.2f}{med(r['warm']):8.2f}{med(r['cold_call']):17.2f}"
+              f"{med(r['warm_call']):17.2f}{med(r['entries']):9.0f}", flush=True)
+    if not args.no_off:
         env = dict(os.environ, JAXNH_CACHE_DIR="off")
         off = [run_user(env)["total"] for _ in range(args.repeats)]
         print(f"cache off: {statistics.median(off):6.2f} s", flush=True)
