@@ -61,7 +61,6 @@ OUT = pathlib.Path(os.environ["JAXNH_BENCH_OUT"]).resolve() if os.environ.get("J
 RESULTS = OUT / "results"
 FIGURES = OUT / "figures"
 
-_integrate = sys.modules["jaxnh.simulate"]._integrate
 
 # label -> factory; "Tsit5u" is jaxnh's unrolled Tsit5 (jaxnh.solvers.Tsit5), "Tsit5" diffrax's
 SOLVERS: dict[str, Callable] = {
@@ -88,22 +87,21 @@ def tol_pair(rtol: float) -> tuple[float, float]:
 
 def jaxnh_solver_fn(mech, method, q0, qd0, params, ts, solver, *, independent=None, record=(), max_steps=100_000,
                     adjoint=None):
-    """A jitted `f(params, y0, rtol, atol) -> (q, qd, num_steps)` around `simulate`'s compiled part.
+    """A jitted `f(params, y0, rtol, atol) -> (q, qd, num_steps, recorded)` around `simulate`.
 
-    The tolerances are traced, so one compilation serves the whole sweep; `y0` is
-    the formulation's state at ts[0]. Returns (f, y0).
+    The tolerances are traced (they enter through the step-size controller), so
+    one compilation serves the whole sweep; `y0` is `(q0, qd0)`. Returns (f, y0).
     """
-    form = formulation(mech, method, q0, qd0, ts[0], params, independent)
-    y0 = form.state(q0, qd0, ts[0], params)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
     def f(p, y0, rtol, atol):
-        controller = diffrax.PIDController(rtol=rtol, atol=atol)
-        (q, qd), result, stats, out = _integrate(form, p, y0, ts, solver, controller, tuple(record), max_steps, None,
-                                                 adjoint, False)
-        return q, qd, stats["num_steps"], out
+        sol = nh.simulate(mech, p, y0[0], y0[1], ts, method, solver=solver, record=tuple(record),
+                          independent=independent, max_steps=max_steps, adjoint=adjoint, throw=False,
+                          stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol))
+        out = {k: getattr(sol, k) for k in record}
+        return sol.q, sol.qd, sol.stats["num_steps"], out
 
-    return jax.jit(f), y0
+    return jax.jit(f), (q0, qd0)
 
 
 def hand_solver_fn(vector_field, unpack, ts, solver, max_steps=100_000):

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnh.equations import formulation
+import jaxnh as nh
 from jaxnh.models import variator as V
 
 from . import problems as PB
@@ -34,7 +34,7 @@ def _batched(kind: str, solver_name: str, ts):
     mech = V.mechanism()
     p0 = V.default_params()
     solver = C.SOLVERS[solver_name]()
-    form = formulation(mech, "appell", jnp.zeros(2), jnp.ones(2), ts[0], p0, (0,))
+    form = nh.Appell(independent=(0,))
 
     def one(J1, w0, rtol, atol):
         p = V.VariatorParams(J1, p0.J2, p0.U21, p0.M1, p0.M2)
@@ -44,10 +44,10 @@ def _batched(kind: str, solver_name: str, ts):
                                       stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
                                       max_steps=100_000, throw=False)
             return sol.ys[0], sol.stats["num_steps"]
-        y0 = (jnp.zeros(2), jnp.stack([w0]))
-        (q, qd), _, stats, _ = C._integrate(form, p, y0, ts, solver, diffrax.PIDController(rtol=rtol, atol=atol), (),
-                                            100_000, None, diffrax.RecursiveCheckpointAdjoint(), False)
-        return q, stats["num_steps"]
+        sol = nh.simulate(mech, p, jnp.zeros(2), jnp.stack([w0, w0 * p.U21(0.0)]), ts, form, solver=solver,
+                          max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), throw=False,
+                          stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol))
+        return sol.q, sol.stats["num_steps"]
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None)))
 

@@ -10,6 +10,9 @@ Precision: importing jaxnh turns on JAX's 64-bit mode
 variable `JAXNH_X64=0` before the import to leave JAX's setting alone; to run
 in float32 with 64-bit mode on, pass float32 arrays (q0, qd0, ts and the
 params leaves) — the library keeps the dtype it is given.
+
+Compiled programs are kept in JAX's persistent compilation cache in the
+user's cache directory (`jaxnh._cache`; `JAXNH_CACHE_DIR=off` disables it).
 """
 
 import os
@@ -19,21 +22,37 @@ import jax
 if os.environ.get("JAXNH_X64", "1") != "0":
     jax.config.update("jax_enable_x64", True)
 
+from ._cache import setup_compilation_cache  # noqa: E402
+
+setup_compilation_cache()
+
 from . import linalg, models, profiles, rigid  # noqa: E402
 from ._consistent import consistent_velocities  # noqa: E402
-from .equations import METHODS, accelerations, choose_independent  # noqa: E402
 from ._holonomic import HolonomicMechanism  # noqa: E402
 from ._linearize import Linearization, linearize  # noqa: E402
 from ._mechanism import Mechanism  # noqa: E402
-from ._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
-from ._simulate import RECORDABLE, STABILIZATIONS, STATUS, Solution, default_solver, simulate  # noqa: E402
-from . import design, identify, solvers  # noqa: E402
-from .identify import fit  # noqa: E402
+from ._ode import ODE, ode  # noqa: E402
+from ._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, choose_adjoint  # noqa: E402
+from ._simulate import RECORDABLE, STABILIZATIONS, default_solver, simulate  # noqa: E402
+from ._solution import DenseMotion, Solution  # noqa: E402
+from ._status import STATUS, InvalidInitialState, SimulationError  # noqa: E402
+from ._stepping import MappedSolver, StepMaps  # noqa: E402
+from .equations import (  # noqa: E402
+    METHODS, Appell, Formulation, Lagrange, Substituted, accelerations, choose_independent,
+)
+from . import design, equations, identify, solvers  # noqa: E402
+from .identify import FitResult, Record, fit  # noqa: E402
 from ._sweep import sweep  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Mechanism", "ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "HolonomicMechanism", "Linearization", "linearize", "rigid", "Solution", "accelerations", "choose_independent", "consistent_velocities",
-    "simulate", "fit", "sweep", "design", "identify", "solvers", "default_solver", "METHODS", "RECORDABLE", "STABILIZATIONS", "STATUS", "models", "profiles", "linalg",
+    "Mechanism", "HolonomicMechanism",
+    "Appell", "Lagrange", "Substituted", "Formulation", "METHODS",
+    "simulate", "ode", "ODE", "Solution", "DenseMotion", "STATUS", "SimulationError", "InvalidInitialState",
+    "RECORDABLE", "STABILIZATIONS", "default_solver",
+    "ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "choose_adjoint", "StepMaps", "MappedSolver",
+    "accelerations", "consistent_velocities", "choose_independent", "linearize", "Linearization",
+    "fit", "FitResult", "Record", "sweep",
+    "design", "equations", "identify", "solvers", "models", "profiles", "rigid", "linalg",
 ]

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 from .equations.base import as_float, as_time
-from .equations.split import VelocitySplit, choose_independent, pick, solve_square
+from .equations.split import VelocitySplit, choose_independent, pick
+from .linalg import solve_square
 from ._mechanism import Mechanism, check_independent
 
 __all__ = ["HolonomicMechanism"]
@@ -383,7 +384,7 @@ class HolonomicMechanism(eqx.Module):
         s = q0.shape[0]
         ind = independent if independent is not None else self.independent
         if method == "lagrange":
-            return simulate(self.differentiated(), params, q0, qd0, ts, method="lagrange", independent=ind, **kwargs)
+            return simulate(self.differentiated(), params, q0, qd0, ts, method="lagrange", **kwargs)
         if method != "appell":
             raise ValueError(f"HolonomicMechanism.simulate: method must be 'lagrange' or 'appell'; got {method!r}")
         free = self.free(s)
@@ -418,8 +419,8 @@ def _restore(hm: HolonomicMechanism, q, t, params):
 @eqx.filter_jit
 def _complete_velocities(mech: Mechanism, independent: tuple, q, qd, t, params):
     s = q.shape[0]
-    split = VelocitySplit.make(mech, s, s - len(independent), independent)
-    return split.velocities(q, split.independent_of(qd), t, params)
+    split = VelocitySplit(mech, s, s - len(independent))
+    return split.velocities(q, split.independent_of(qd, independent), t, params, independent)
 
 
 @eqx.filter_jit

@@ -43,9 +43,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .equations.base import as_float, as_time
-from .equations.split import VelocitySplit, check_split, choose_independent, pick, solve_square
+from ._status import is_traced
+from .equations.split import (
+    VelocitySplit, best_partition, choose_independent, partition_quality, pick, resolve_independent,
+)
 from .linalg import mm, solve_spd
-from ._mechanism import Mechanism, check_independent
+from ._mechanism import Mechanism
 
 __all__ = ["Linearization", "linearize"]
 
@@ -77,7 +80,7 @@ class Linearization(eqx.Module):
     state: Float[Array, " n"]
     states: tuple = eqx.field(static=True)
     coordinates: tuple = eqx.field(static=True)
-    speeds: tuple = eqx.field(static=True)
+    speeds: Optional[tuple] = eqx.field(static=True)
 
     def eigenvalues(self):
         """Eigenvalues of A (complex, unsorted), 1/s."""
@@ -117,7 +120,8 @@ def linearize(
             all); leave out ignorable ones.
         speeds: indices of the independent velocities (default
             `mech.independent`, else chosen from the constraint matrix at
-            (q, qd) — needs concrete values; pass it under `jit`/`vmap`).
+            (q, qd); under `jit`/`vmap` with traced values the choice is made
+            inside the program and `speeds` of the result is None).
         method: which equations are linearised: "lagrange" — Lagrange's
             expression from T, `E = Bᵀ (d/dt ∂T/∂q̇ − ∂T/∂q − Q)` (the
             multipliers drop out, as `Bᵀ Aᵀ = 0`); "appell" — Appell's,
@@ -140,18 +144,53 @@ def linearize(
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
     m = mech.check_shapes(q, qd, t, params)  # raises, naming the argument, for wrong shapes
-    mech.check_finite(q, qd, t, params)  # and for concrete NaN/inf
+    # concrete input: NaN/inf or a mass matrix that is not positive definite raise here
+    mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))
     s = q.shape[0]
     coordinates = tuple(range(s)) if coordinates is None else _indices("coordinates", coordinates, s)
-    if speeds is None:
-        speeds = mech.independent
-    if speeds is None:
+    speeds = resolve_independent(mech, None if speeds is None else _indices("speeds", speeds, s), s, m)
+    if speeds is None and not is_traced(q, qd, t, params):
         speeds = choose_independent(mech, q, qd, t, params)
-    speeds = check_independent(_indices("speeds", speeds, s), s, m)
+    if speeds is not None and m and not is_traced(q, qd, t, params):
+        ratio = float(_quality(mech, q, qd, t, params, speeds, s - m))
+        if not ratio > 1e3 * float(jnp.finfo(q.dtype).eps):
+            raise ValueError(
+                f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
+                "at this state (the dependent block of ∂c/∂qd is singular); choose other speeds or pass "
+                "speeds=None for an automatic choice."
+            )
+    if accelerations is not None:
+        accelerations = jnp.asarray(accelerations, dtype=q.dtype)
+        if accelerations.shape != (s - m,):
+            raise ValueError(
+                f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); got {accelerations.shape}"
+            )
+    A, mass, damping, stiffness, rates, x0 = _linearize(
+        mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations
+    )
+    names = mech.coordinate_names(s)
+    dnames = tuple("d" + names[i] for i in speeds) if speeds is not None else tuple(f"dv{j}" for j in range(s - m))
+    states = tuple(names[i] for i in coordinates) + dnames
+    return Linearization(
+        A=A, mass=mass, damping=damping, stiffness=stiffness, rates=rates, state=x0,
+        states=states, coordinates=coordinates, speeds=speeds,
+    )
+
+
+@eqx.filter_jit
+def _quality(mech, q, qd, t, params, part, k):
+    return partition_quality(mech, q, qd, t, params, part, k)[0]
+
+
+@eqx.filter_jit
+def _linearize(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations):
+    """The compiled part of `linearize` (once per mechanism, shapes and options)."""
+    s = q.shape[0]
+    m = mech.n_constraints(q, qd, t, params)
+    split = VelocitySplit(mech, s, m)
     if complete is not None:
         q = complete(q, t, params)
-    split = VelocitySplit.make(mech, s, m, speeds)
-    check_split(mech, speeds, q, qd, t, params)
+    part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
     nc = len(coordinates)
     use_S = method == "appell" and mech.acceleration_energy is not None
 
@@ -161,12 +200,10 @@ def linearize(
             qq = qq.at[i].set(xc[j])
         return complete(qq, t, params) if complete is not None else qq
 
-    velocities_and_rates = split.velocities_and_rates if mech.nonlinear_constraints else _LinearSplit(split).velocities_and_rates
-
     def E(xc, v, vd):
         """Bᵀ (M q̈ + h − Q) (or Bᵀ (∂S/∂q̈ − Q)) at q̈ = B v̇ + β."""
         qq = configuration(xc)
-        qdot, B, beta = velocities_and_rates(qq, v, t, params)
+        qdot, B, beta = split.velocities_and_rates(qq, v, t, params, part)
         qdd = mm(B, vd) + beta
         if use_S:
             lhs = jax.grad(mech.acceleration_energy, argnums=2)(qq, qdot, qdd, t, params)
@@ -176,62 +213,24 @@ def linearize(
 
     def coordinate_rates(x):
         qq = configuration(x[:nc])
-        return pick(velocities_and_rates(qq, x[nc:], t, params)[0], coordinates)
+        return pick(split.velocities_and_rates(qq, x[nc:], t, params, part)[0], coordinates)
 
-    xc0, v0 = pick(q, coordinates), split.independent_of(qd)
+    xc0, v0 = pick(q, coordinates), split.independent_of(qd, part)
     x0 = jnp.concatenate([xc0, v0])
-    n, k = x0.shape[0], v0.shape[0]
+    n = x0.shape[0]
     if accelerations is None:
         # E is affine in v̇: its value at v̇ = 0 and the mass matrix give the operating accelerations
         E0, mass = _value_and_jacobian(lambda vd: E(xc0, v0, vd), jnp.zeros_like(v0))
         vd0 = solve_spd(mass, -E0)
     else:
-        vd0 = jnp.asarray(accelerations, dtype=q.dtype)
-        if vd0.shape != (k,):
-            raise ValueError(f"linearize: `accelerations` must have shape ({k},) (one per independent speed); got {vd0.shape}")
+        vd0 = accelerations
     E1, J = _value_and_jacobian(lambda z: E(z[:nc], z[nc:n], z[n:]), jnp.concatenate([x0, vd0]))
     stiffness, damping, mass = J[:, :nc], J[:, nc:n], J[:, n:]
     vd0 = vd0 - solve_spd(mass, E1)  # exact already unless `accelerations` was wrong
     qc_rate, P = _value_and_jacobian(coordinate_rates, x0)
     A = jnp.concatenate([P, -solve_spd(mass, J[:, :n])], axis=0)
     rates = jnp.concatenate([qc_rate, vd0])
-    names = mech.coordinate_names(s)
-    states = tuple(names[i] for i in coordinates) + tuple("d" + names[i] for i in speeds)
-    return Linearization(
-        A=A, mass=mass, damping=damping, stiffness=stiffness, rates=rates, state=x0,
-        states=states, coordinates=coordinates, speeds=speeds,
-    )
-
-
-class _LinearSplit(eqx.Module):
-    """Velocities from constraints linear in q̇, `A q̇ + a = 0`, with B and β written out.
-
-    `q̇ = B v + β0` with `B = [I; −A_D⁻¹ A_I]` and the dependent part of β
-    solving `A_D β_D = −b`, `b = (∂c/∂q) q̇ + ∂c/∂t` (so `A q̈ + b = 0`): the
-    solve is never differentiated, which keeps nested derivatives small.
-    """
-
-    split: VelocitySplit
-
-    def velocities_and_rates(self, q, v, t, params):
-        split, mech = self.split, self.split.mech
-        ind, dep = split.independent, split.dependent
-        s = len(ind) + len(dep)
-        if not dep:  # no constraints: q̇ = v
-            return v, jnp.eye(s, dtype=q.dtype), jnp.zeros_like(v)
-        zero = jnp.zeros((s,), q.dtype)
-        a = mech.constraint(q, zero, t, params)
-        A = jax.jacfwd(lambda u: mech.constraint(q, u, t, params))(zero)
-        AD = jnp.stack([A[:, i] for i in dep], axis=1)
-        AI = jnp.stack([A[:, i] for i in ind], axis=1)
-        x = solve_square(AD, -(mm(AI, v) + a))
-        qd = split.assemble(v, x)
-        B = jax.vmap(lambda col, xcol: split.assemble(col, xcol), in_axes=(1, 1), out_axes=1)(
-            jnp.eye(len(ind), dtype=q.dtype), solve_square(AD, -AI)
-        )
-        _, b = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (qd, jnp.ones_like(t)))
-        beta = split.assemble(jnp.zeros_like(v), solve_square(AD, -b))
-        return qd, B, beta
+    return A, mass, damping, stiffness, rates, x0
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):

@@ -42,8 +42,17 @@ class Mechanism(eqx.Module):
         forces: generalized non-potential forces `Q(q, qd, t, params) -> (s,)`
             (N for lengths, N·m for angles): the virtual work is `Q · δq`.
         potential: potential energy `V(q, t, params) -> scalar`, J.
-        holonomic: reserved for holonomic constraints `g(q, t, params) -> (h,)`;
-            use `jaxnh.HolonomicMechanism` for them (an error is raised if given).
+        holonomic: holonomic constraints `g(q, t, params) -> (h,)` (each
+            `g_j = 0` along the motion, in its own units, e.g. m for a
+            contact height). They are imposed at the velocity level, as
+            `ġ = (∂g/∂q) qd + ∂g/∂t = 0` appended to the nonholonomic
+            constraints (`constraint` returns `[c, ġ]`), so every formulation,
+            `fit`, `sweep` and `linearize` handle them with no extra code; the
+            multipliers of the last h constraints are the holonomic constraint
+            forces. q0 must satisfy g = 0 (`holonomic_residual` tells);
+            g itself then drifts only at the level of the solver tolerance.
+            For an exact elimination of dependent coordinates by Newton's
+            method, see `jaxnh.HolonomicMechanism.reduced`.
         acceleration_energy: Gibbs–Appell acceleration energy
             `S(q, qd, qdd, t, params) -> scalar` (J/s²); used by
             `method="appell"` when given. Only its part that depends on
@@ -77,28 +86,35 @@ class Mechanism(eqx.Module):
             f = getattr(self, name)
             if f is not None and not callable(f):
                 raise TypeError(f"Mechanism: `{name}` must be a function or None, got {type(f).__name__}")
-        if self.holonomic is not None:
-            raise NotImplementedError(
-                "Mechanism: `holonomic` constraints go into jaxnh.HolonomicMechanism(kinetic, holonomic, "
-                "dependent=...), whose .differentiated() (ġ = 0 among the constraints, for 'lagrange') and "
-                ".reduced() (dependent coordinates by Newton, for 'appell') are Mechanisms."
-            )
+        if self.holonomic is not None and not callable(self.holonomic):
+            raise TypeError(f"Mechanism: `holonomic` must be a function g(q, t, params) or None, got {type(self.holonomic).__name__}")
         if self.names is not None and not all(isinstance(n, str) for n in self.names):
             raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
 
     # --- evaluation helpers used by the formulations -------------------------
 
     def n_constraints(self, q, qd, t, params) -> int:
-        """Number m of nonholonomic constraints (static)."""
-        if self.constraints is None:
-            return 0
-        return jax.eval_shape(self.constraints, q, qd, t, params).shape[0]
+        """Number m of velocity constraints (static): nonholonomic plus differentiated holonomic ones."""
+        return jax.eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
 
     def constraint(self, q, qd, t, params):
-        """c(q, qd, t), shape (m,); an empty array without constraints."""
-        if self.constraints is None:
+        """Velocity constraints `[c(q, qd, t), ġ(q, qd, t)]`, shape (m,); empty without constraints."""
+        parts = []
+        if self.constraints is not None:
+            parts.append(jnp.asarray(self.constraints(q, qd, t, params)))
+        if self.holonomic is not None:
+            _, gd = jax.jvp(lambda x, t_: jnp.asarray(self.holonomic(x, t_, params)), (q, jnp.asarray(t, q.dtype)),
+                            (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)))
+            parts.append(gd.astype(jnp.result_type(qd)))
+        if not parts:
             return jnp.zeros((0,), jnp.result_type(qd))
-        return jnp.asarray(self.constraints(q, qd, t, params))
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+
+    def holonomic_residual(self, q, t, params):
+        """g(q, t), shape (h,) (empty without holonomic constraints): how far q is off them."""
+        if self.holonomic is None:
+            return jnp.zeros((0,), jnp.result_type(q))
+        return jnp.asarray(self.holonomic(q, t, params))
 
     def generalized_forces(self, q, qd, t, params):
         """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
@@ -159,14 +175,26 @@ class Mechanism(eqx.Module):
         T = out(self.kinetic, "kinetic", q, qd, t, params)
         if getattr(T, "shape", None) != ():
             raise ValueError(f"Mechanism `kinetic` must return a scalar; got shape {getattr(T, 'shape', type(T))}")
+        if not jnp.issubdtype(T.dtype, jnp.inexact):
+            raise TypeError(
+                f"Mechanism `kinetic` returned dtype {T.dtype}: T must be a floating-point scalar (it is "
+                "differentiated twice for the mass matrix); compute it from the float velocities qd, e.g. 0.5 * J * qd[0] ** 2"
+            )
         m = 0
         if self.constraints is not None:
             c = out(self.constraints, "constraints", q, qd, t, params)
             if len(getattr(c, "shape", ())) != 1:
                 raise ValueError(f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}")
             m = c.shape[0]
-            if m > s:
-                raise ValueError(f"Mechanism `constraints` returns m={m} constraints but there are only s={s} coordinates; expected m < s")
+        if self.holonomic is not None:
+            g = out(self.holonomic, "holonomic", q, t, params)
+            if len(getattr(g, "shape", ())) != 1:
+                raise ValueError(f"Mechanism `holonomic` must return a vector of shape (h,); got shape {getattr(g, 'shape', None)}")
+            m += g.shape[0]
+        if m > s:
+            raise ValueError(
+                f"Mechanism: {m} constraints (nonholonomic plus holonomic) but only s={s} coordinates; expected at most s"
+            )
         if self.forces is not None:
             Q = out(self.forces, "forces", q, qd, t, params)
             if getattr(Q, "shape", None) != (s,):

@@ -6,27 +6,30 @@ For a state y' = f(t, y, p) the sensitivities S = ∂y/∂(y0, p) obey
 
 one column per differentiated scalar (an entry of q0/qd0 or of a parameter
 leaf). `ForwardSensitivity` integrates (y, S) together in the same Runge–Kutta
-solver, with the step control looking at y only, so the steps are those of the
-plain solve (diffrax stops gradients through step sizes as well), and an RK
-method applied to the variational equations is the derivative of the RK
-solution: the result is the derivative of the computed solution, as with
-`diffrax.ForwardMode`, to rounding.
+solver. An RK method applied to the variational equations is the derivative
+of the RK solution for the same steps, so the result is the derivative of the
+computed solution.
+
+Error control includes the sensitivities (as CVODES does with `errconS`):
+the step size is chosen so that both the state and every sensitivity column
+meet the tolerances (the norm is the larger of the two RMS norms). Without
+this, an explicit method running at its stability limit on a stiff problem
+keeps the state accurate while its sensitivities grow without bound (damping
+of 300/s on the variator: a derivative of −5.6e93 against −6.0e-6). Step
+maps of the formulation (re-choosing Appell's partition, projection for
+Lagrange's) are applied to the sensitivity columns by their derivatives
+(`jaxnh._stepping.SensitivityMaps`), so sensitivities compose with any
+stabilisation.
 
 It is wired in as a `jax.custom_jvp` whose tangent output is `S · tangent`:
 linear in the tangents, so `jax.jvp`/`jax.jacfwd` *and* `jax.grad`/`jax.jacrev`
 (which transpose that product) both work, and one augmented solve serves every
-mode. Only the columns of inputs that are actually differentiated are built
-(symbolic zeros), so the cost is one solve of (1 + P) times the state for P
-differentiated scalars — far below reverse mode through diffrax's checkpointed
-loop for small mechanisms with tens of parameters (see benchmarks/RESULTS.md).
-
-`simulate(adjoint=None)` chooses it automatically for up to
-`FORWARD_MAX_PARAMETERS` float scalars in (params, q0, qd0) (`auto_adjoint`);
-measurements in benchmarks/RESULTS.md ("Gradients").
+mode. Only the columns of inputs that are actually differentiated are built.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import diffrax
@@ -35,9 +38,10 @@ import jax
 import jax.flatten_util
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import optimistix as optx
 
-__all__ = ["ForwardSensitivity", "solve_forward_sensitivity", "FORWARD_MAX_PARAMETERS", "auto_adjoint"]
+from ._stepping import MappedSolver, SensitivityMaps
+
+__all__ = ["ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "LeanIntegrator", "choose_adjoint", "lean_compatible"]
 
 FORWARD_MAX_PARAMETERS = 64
 """Above this many float scalars in (params, q0, qd0) the automatic choice is reverse mode."""
@@ -48,77 +52,200 @@ class ForwardSensitivity(eqx.Module):
 
     The cost of a derivative is one solve of the state and its P sensitivity
     columns, P = number of differentiated scalars: cheapest for up to a few
-    tens of parameters. Report times `ts` cannot be differentiated this way.
+    tens of parameters. Report times `ts` cannot be differentiated this way,
+    and dense output and events need a diffrax adjoint.
+
+    Arguments:
+        error_control: include the sensitivities in the step-size error
+            control (default True; see the module docstring).
     """
 
+    error_control: bool = eqx.field(static=True, default=True)
 
-def auto_adjoint(params, q0, qd0, max_forward: int = FORWARD_MAX_PARAMETERS):
-    """`ForwardSensitivity()` for at most `max_forward` float scalars in the inputs, else
-    `diffrax.RecursiveCheckpointAdjoint()`."""
-    n = sum(math.prod(jnp.shape(x)) for x in jtu.tree_leaves((params, q0, qd0)) if eqx.is_inexact_array(x))
-    return ForwardSensitivity() if n <= max_forward else diffrax.RecursiveCheckpointAdjoint()
+    def solve(self, vector_field, solver, maps, y0, args, saveat, controller, *, t0, t1, max_steps, dt0,
+              error_mask=None, integrator=None):
+        """The solve of `vector_field(t, y, args)` from y0 at t0 to t1, saved at `saveat`.
+
+        Returns `(ts, ys, result, stats)`, differentiable in `args` and `y0` by
+        forward sensitivities. `maps` (a `StepMaps` or None) is applied around
+        every step; `error_mask` (a static tuple of 0/1, one per leaf of y0)
+        excludes bookkeeping components from the error control.
+        """
+        return _solve(args, y0, controller, t0, t1, saveat, vector_field=vector_field, solver=solver, maps=maps,
+                      max_steps=max_steps, dt0=dt0, error_mask=error_mask, error_control=self.error_control,
+                      integrator=integrator)
 
 
-def solve_at(vector_field, solver, y0, args, ts, controller, max_steps, dt0, throw,
-             adjoint=diffrax.ForwardMode()):
-    """diffrax's solve of y' = vector_field(t, y, args) from ts[0], reported at ts:
-    (ys, result, stats)."""
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(vector_field),
-        solver,
-        t0=ts[0],
-        t1=ts[-1],
-        dt0=dt0,
-        y0=y0,
-        args=args,
-        saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,  # ForwardMode for the sensitivity solves: only reached by higher-order derivatives
-        throw=throw,
-    )
-    return sol.ys, sol.result, sol.stats
+def _masked_rms(err, mask):
+    w = jnp.sum(mask)
+    return jnp.sqrt(jnp.sum(mask * err**2) / jnp.maximum(w, 1))
+
+
+def _flat_mask(error_mask, y0):
+    """Per-element weights (n,) from per-leaf weights of y0 (None: all ones)."""
+    leaves = jtu.tree_leaves(y0)
+    weights = (1.0,) * len(leaves) if error_mask is None else error_mask
+    return jnp.concatenate([jnp.full((x.size,), w, jnp.result_type(x)) for x, w in zip(leaves, weights)])
+
+
+def diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, *, t0, t1, max_steps, dt0,
+                  adjoint=diffrax.ForwardMode(), event=None, progress_meter=None, error_mask=None):
+    """One `diffrax.diffeqsolve` of y' = vector_field(t, y, args) with `maps` around every step,
+    the `error_mask` applied to a default-norm PID controller, and throw=False."""
+    if maps is not None:
+        solver = MappedSolver(solver, maps)
+    if error_mask is not None and isinstance(controller, diffrax.PIDController) and _default_norm(controller):
+        flat_mask = _flat_mask(error_mask, y0)
+        controller = eqx.tree_at(
+            lambda c: c.norm, controller, lambda e: _masked_rms(jax.flatten_util.ravel_pytree(e)[0], flat_mask)
+        )
+    kwargs = {} if progress_meter is None else {"progress_meter": progress_meter}
+    with no_host_callbacks():
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field), solver, t0=t0, t1=t1, dt0=dt0, y0=y0, args=args, saveat=saveat,
+            stepsize_controller=controller, max_steps=max_steps, adjoint=adjoint, event=event, throw=False, **kwargs,
+        )
+
+
+@contextlib.contextmanager
+def no_host_callbacks():
+    """While tracing: equinox's run-time checks (`error_if`) give NaN instead of a host callback.
+
+    diffrax checks its `SaveAt` times and `dt0` with `equinox.error_if` even with
+    `throw=False`; each check is a host callback, and a program with host
+    callbacks cannot be stored in JAX's persistent compilation cache or
+    exported. jaxnh has checked those inputs already (a failure becomes a
+    `STATUS`), so inside its solves the checks are switched to equinox's "nan"
+    mode. (Equinox reads the mode from `equinox._errors.EQX_ON_ERROR` when a
+    check is traced; if that attribute ever goes away this does nothing.)
+    """
+    import equinox._errors as errors
+
+    old = getattr(errors, "EQX_ON_ERROR", None)
+    if old is None or old != "raise":
+        yield
+        return
+    errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        errors.EQX_ON_ERROR = old
+
+
+def _default_norm(controller) -> bool:
+    import optimistix as optx
+
+    return controller.norm is optx.rms_norm
+
+
+class LeanIntegrator(eqx.Module):
+    """Integrate on jaxnh's lean loop (`jaxnh._lean.lean_solve`) instead of `diffrax.diffeqsolve`.
+
+    For scenes that need no events, dense output, progress meter or reverse
+    mode; the step control is the PIDController's (rtol, atol, integral
+    control). The saved times are the report times plus, last, the time
+    reached (for the diagnosis of a failed solve), as `SaveAt(ts=ts, t1=True)`.
+    """
+
+    method: str = eqx.field(static=True)  # "tsit5" or "dop853"
+    report: str = eqx.field(static=True, default="step")
+
+    def __call__(self, vector_field, maps, y0, args, ts, controller, *, max_steps, dt0, norm):
+        from ._lean import lean_solve
+
+        z0, unravel = jax.flatten_util.ravel_pytree(y0)
+
+        def flat(tree):
+            return jax.flatten_util.ravel_pytree(tree)[0].astype(z0.dtype)
+
+        def f(t, z, a):
+            return flat(vector_field(t, unravel(z), a))
+
+        pre = post = None
+        if maps is not None:
+            def pre(t, z, a):
+                y, jumped = maps.pre(t, unravel(z), a)
+                return flat(y), jumped
+
+            def post(t0, z0_, t1, z1, a):
+                y1, corr, reject, fail = maps.post(t0, unravel(z0_), t1, unravel(z1), a)
+                return flat(y1), None if corr is None else flat(corr), reject | fail
+
+        sol = lean_solve(f, z0, args, ts, method=self.method, rtol=controller.rtol, atol=controller.atol,
+                         max_steps=max_steps, dt0=dt0, norm=norm, pre_step=pre, post_step=post, report=self.report)
+        zs = jnp.concatenate([sol.ys, sol.y_final[None]], axis=0)
+        out_ts = jnp.concatenate([ts, sol.t_final[None].astype(ts.dtype)])
+        result = diffrax.RESULTS.where(
+            sol.status == 0, diffrax.RESULTS.successful,
+            diffrax.RESULTS.where(sol.status == 1, diffrax.RESULTS.max_steps_reached, diffrax.RESULTS.dt_min_reached),
+        )
+        stats = dict(sol.stats)
+        stats["max_steps"] = max_steps
+        return out_ts, jax.vmap(unravel)(zs), result, stats
+
+
+def lean_compatible(controller) -> bool:
+    """Whether a step-size controller is one the lean loop reproduces (a plain PIDController)."""
+    import optimistix as optx
+
+    return (isinstance(controller, diffrax.PIDController) and controller.norm is optx.rms_norm
+            and controller.dtmin is None and controller.dtmax is None and controller.pcoeff == 0 and controller.dcoeff == 0
+            and controller.icoeff == 1 and controller.factormin == 0.2 and controller.factormax == 10.0
+            and controller.safety == 0.9 and controller.error_order is None)
+
+
+def _plain(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, max_steps, dt0, error_mask,
+           integrator=None, norm=None):
+    if integrator is not None:
+        if norm is None:
+            mask = _flat_mask(error_mask, y0)
+            norm = lambda e: _masked_rms(e, mask.astype(e.dtype))  # noqa: E731
+        return integrator(vector_field, maps, y0, args, saveat.subs.ts, controller, max_steps=max_steps, dt0=dt0,
+                          norm=norm)
+    if norm is not None:
+        controller = eqx.tree_at(lambda c: c.norm, controller, norm)
+    sol = diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, t0=t0, t1=t1,
+                        max_steps=max_steps, dt0=dt0, error_mask=None if norm is not None else error_mask)
+    return sol.ts, sol.ys, sol.result, sol.stats
 
 
 @eqx.filter_custom_jvp
-def solve_forward_sensitivity(params, y0, ts, controller, *, vector_field, solver, max_steps, dt0, throw):
-    """The solve `vector_field(t, y, params)` from y0 reported at ts: (ys, result, stats).
-
-    `controller` is a `diffrax.PIDController` (its norm must be the default
-    RMS norm). Differentiable in `params` and `y0` by forward sensitivities
-    (see the module docstring).
-    """
-    return solve_at(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
+def _solve(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, max_steps, dt0, error_mask,
+           error_control, integrator):
+    return _plain(args, y0, controller, t0, t1, saveat, vector_field=vector_field, solver=solver, maps=maps,
+                  max_steps=max_steps, dt0=dt0, error_mask=error_mask, integrator=integrator)
 
 
-@solve_forward_sensitivity.def_jvp
-def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw):
-    params, y0, ts, controller = primals
-    t_params, t_y0, t_ts, t_controller = tangents
-    if any(x is not None for x in jtu.tree_leaves((t_ts, t_controller))):
+@_solve.def_jvp
+def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0, error_mask, error_control,
+               integrator):
+    args, y0, controller, t0, t1, saveat = primals
+    t_args, t_y0, *t_rest = tangents
+    if any(x is not None for x in jtu.tree_leaves(t_rest)):
         raise NotImplementedError(
             "ForwardSensitivity differentiates with respect to the parameters and the initial state only, "
             "not the report times or controller settings; use adjoint=diffrax.RecursiveCheckpointAdjoint() for those."
         )
-    # Split the inputs into differentiated leaves (nonzero tangent) and the rest.
     is_none = lambda x: x is None  # noqa: E731
-    p_mask = jtu.tree_map(lambda t: t is not None, t_params, is_leaf=is_none)
+    p_mask = jtu.tree_map(lambda t: t is not None, t_args, is_leaf=is_none)
     y_mask = jtu.tree_map(lambda t: t is not None, t_y0, is_leaf=is_none)
-    p_diff, p_rest = eqx.partition(params, p_mask)
-    tp_diff = eqx.filter(t_params, p_mask, is_leaf=is_none)
+    p_diff, p_rest = eqx.partition(args, p_mask)
+    tp_diff = eqx.filter(t_args, p_mask, is_leaf=is_none)
     p_leaves, p_def = jtu.tree_flatten(p_diff)
     y_leaves, y_def = jtu.tree_flatten(y0)
     y_on = jtu.tree_leaves(y_mask)
     sizes_p = [x.size for x in p_leaves]
     sizes_y = [x.size if on else 0 for x, on in zip(y_leaves, y_on)]
     P = sum(sizes_p) + sum(sizes_y)
+    kw = dict(vector_field=vector_field, solver=solver, maps=maps, max_steps=max_steps, dt0=dt0, error_mask=error_mask,
+              integrator=integrator)
     if P == 0:
-        out = solve_at(vector_field, solver, y0, params, ts, controller, max_steps, dt0, throw)
+        out = _plain(args, y0, controller, t0, t1, saveat, **kw)
         return out, jtu.tree_map(lambda _: None, out)
 
     dtype = jnp.result_type(*y_leaves)
     eye = jnp.eye(P, dtype=dtype)
-    # Column j is the derivative along one scalar input: y-columns first, then params.
+    # Column j is the derivative along one scalar input: y-columns first, then args.
     offset = 0
     S0 = []
     for x, n in zip(y_leaves, sizes_y):
@@ -139,19 +266,25 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     z0, unravel = jax.flatten_util.ravel_pytree((y0, S0))
     ny = sum(x.size for x in y_leaves)
 
-    def augmented(t, z, args):
+    def augmented(t, z, a):
         y, S = unravel(z)
-        pd, E_ = args
+        pd, E_ = a
         fy, lin = jax.linearize(lambda y_, pd_: vector_field(t, y_, eqx.combine(pd_, p_rest)), y, pd)
         return jax.flatten_util.ravel_pytree((fy, jax.vmap(lin)(S, E_)))[0].astype(z.dtype)
 
-    def y_norm(scaled_error):  # step control on the state only: the sensitivities follow its steps
-        return optx.rms_norm(scaled_error[:ny])
+    mask = _flat_mask(error_mask, y0).astype(dtype)
+    mask_S = jnp.tile(mask, P)
 
-    y_controller = eqx.tree_at(lambda c: c.norm, controller, y_norm)
-    if hasattr(solver, "for_sensitivities"):  # a projection after each step: project the columns too
-        solver = solver.for_sensitivities(unravel, p_rest)
-    zs, result, stats = solve_at(augmented, solver, z0, (p_diff, E), ts, y_controller, max_steps, dt0, throw)
+    def norm(e):
+        ey = _masked_rms(e[:ny], mask)
+        if not error_control:  # the steps of the plain solve: the state alone
+            return ey
+        return jnp.maximum(ey, _masked_rms(e[ny:], mask_S))
+
+    z_maps = None if maps is None else SensitivityMaps(maps, unravel, p_rest)
+    ts, zs, result, stats = _plain((p_diff, E), z0, controller, t0, t1, saveat, vector_field=augmented,
+                                   solver=solver, maps=z_maps, max_steps=max_steps, dt0=dt0, error_mask=None,
+                                   integrator=integrator, norm=norm)
     ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]
@@ -160,5 +293,24 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, max_steps, dt0, throw
     # saved sensitivities have shape (n, P, ...): contract the column axis
     t_ys = jtu.tree_map(lambda s: jnp.tensordot(s, tvec, axes=([1], [0])).astype(s.dtype), Ss)
     no_tangent = lambda tree: jtu.tree_map(lambda _: None, tree)  # noqa: E731
-    return (ys, result, stats), (t_ys, no_tangent(result), no_tangent(stats))
+    return (ts, ys, result, stats), (no_tangent(ts), t_ys, no_tangent(result), no_tangent(stats))
 
+
+def count_float_scalars(*trees) -> int:
+    """Number of float scalars in the array leaves of `trees`."""
+    return sum(math.prod(jnp.shape(x)) for x in jtu.tree_leaves(trees) if eqx.is_inexact_array(x))
+
+
+def choose_adjoint(adjoint, *inputs, dense: bool = False, max_forward: int = FORWARD_MAX_PARAMETERS):
+    """The one forward/reverse policy of `simulate` and `fit`.
+
+    `adjoint=None`: `ForwardSensitivity()` for at most `max_forward` float
+    scalars in the inputs (one augmented solve serves grad, jacfwd and jvp),
+    else `diffrax.RecursiveCheckpointAdjoint()`; dense output and events
+    always take the diffrax adjoint. An adjoint given is returned unchanged.
+    """
+    if adjoint is not None:
+        return adjoint
+    if dense or count_float_scalars(*inputs) > max_forward:
+        return diffrax.RecursiveCheckpointAdjoint()
+    return ForwardSensitivity()

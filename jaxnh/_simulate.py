@@ -1,7 +1,17 @@
-"""Integration of the equations of motion with diffrax."""
+"""`simulate`: one compiled composition of a formulation, a diffrax solver, a step-size
+controller, what to save, an event and an adjoint.
+
+Everything value-dependent happens inside the compiled program: the checks of
+the initial state (their outcome is a `STATUS`, no host callback), the choice
+of independent velocities for Appell's equations (per batch member under
+`vmap`, re-chosen during the run), the solve and the recorded quantities.
+Python only resolves the static options, so a repeat call costs little more
+than the compiled solve.
+"""
 
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
 import diffrax
@@ -9,106 +19,33 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
-from .equations import METHODS, formulation
-from .equations.base import as_float
-from .equations.lagrange import Lagrange
-from ._consistent import consistent_velocities
+from ._checks import diagnose_stall, initial_checks
 from ._mechanism import Mechanism
-from ._sensitivity import ForwardSensitivity, auto_adjoint, solve_at, solve_forward_sensitivity
+from ._sensitivity import ForwardSensitivity, LeanIntegrator, choose_adjoint, diffrax_solve, lean_compatible
+from ._solution import DenseMotion, Solution
+from ._status import STATUS, error_for, is_traced, raise_in_graph
+from .equations import Appell, Formulation, Lagrange, as_formulation
+from .equations.base import as_float
 from .solvers import Tsit5
-from ._stabilize import ParamsOf, ProjectedSolver, VelocityProjection, default_baumgarte_rate
 
-__all__ = ["Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
-           "DOPRI8_BELOW_RTOL_LOOPED", "UNROLL_MAX_OPERATIONS", "vector_field_operations"]
+__all__ = [
+    "Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
+    "DOPRI8_BELOW_RTOL_LOOPED", "UNROLL_MAX_OPERATIONS", "vector_field_operations", "field",
+]
 
 RECORDABLE = ("multipliers", "energy", "residual")
 STABILIZATIONS = (None, "baumgarte", "projection")
 
-
-class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
-    """Why a simulation stopped: diffrax's results plus jaxnh's own."""
-
-    non_finite_input = (
-        "The initial state, the report times or the parameters contain NaN or inf; "
-        "nothing was integrated."
-    )
-    non_finite_output = (
-        "The solve finished but a reported value (coordinates, velocities, multipliers, "
-        "energy or constraint residual) is NaN or inf: an overflow, or a singular "
-        "dependent-velocity block at a report time."
-    )
-    singular_split = (
-        "The dependent-velocity block of the constraint matrix (the columns not in "
-        "`independent`) became singular during the run: its determinant vanished or "
-        "changed sign between report times. The Appell split is invalid there and the "
-        "motion reported after it is not trustworthy. Pass `independent=` so that the "
-        "dependent block stays regular over the whole motion, or use method='lagrange'."
-    )
-
-
-class Solution(eqx.Module):
-    """A simulated motion, reported at the requested times.
-
-    Attributes:
-        ts: report times (n,), s.
-        q: coordinates (n, s) at `ts`.
-        qd: velocities (n, s) at `ts` (dependent ones from the constraints for
-            "appell"/"substituted").
-        multipliers: constraint multipliers λ (n, m), when recorded: the
-            constraint forces are `Aᵀ λ` with `A = ∂c/∂qd` (for the variator
-            λ is the tangential contact force times the roller radius, N·m).
-        energy: T + V (n,), J, when recorded.
-        residual: constraint values c(q, qd, t) (n, m), when recorded; zero
-            for an exact solution.
-        stats: dict with `num_steps` (attempted), `num_accepted_steps`,
-            `num_rejected_steps`, `rhs_evaluations` (vector-field calls:
-            stages per step times attempted steps), `max_steps`.
-        status: `jaxnh.STATUS` item (diffrax's `RESULTS` extended):
-            `STATUS.successful`, or why the solve failed (step limit, step
-            size collapse, non-finite input). After a failure the values past
-            the failure time are NaN or inf, never a plausible-looking
-            answer.
-        names: coordinate names.
-    """
-
-    ts: Float[Array, " n"]
-    q: Float[Array, "n s"]
-    qd: Float[Array, "n s"]
-    multipliers: Optional[Float[Array, "n m"]]
-    energy: Optional[Float[Array, " n"]]
-    residual: Optional[Float[Array, "n m"]]
-    stats: dict
-    status: STATUS
-    names: tuple = eqx.field(static=True)
-
-    @property
-    def success(self):
-        """Boolean (array under vmap): did the solve reach the last report time."""
-        return self.status == STATUS.successful
-
-    @property
-    def message(self) -> str:
-        """Why the solve failed, or "success" (concrete, un-batched solutions only)."""
-        if bool(np.all(np.asarray(self.success))):
-            return "success"
-        msg = f"solve failed: {STATUS[self.status]}"
-        if self.status == STATUS.max_steps_reached:
-            msg += (
-                " If the step count is large because the problem is stiff (strong damping, a large "
-                "Baumgarte rate), use an implicit solver with a Newton root finder, e.g. "
-                "solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol)) "
-                "(diffrax's default chord iteration rejected most steps of the multiplier form); "
-                "if the state became non-finite (a singular mass matrix or dependent-velocity "
-                "block), check the parameters or use method='lagrange'."
-            )
-        return msg
-
+LEAN = True
+"""Whether scenes without events, dense output, progress meter or reverse mode (and
+with a small vector field and the default solver and controller) run on jaxnh's
+lean integration loop (`jaxnh._lean`) instead of `diffrax.diffeqsolve`:
+measured in benchmarks/lean_loop.py."""
 
 DOP853_BELOW_RTOL = 1e-9
 """`default_solver` switches from a 5th- to an 8th-order method below this rtol
-(the name is historical: the 8th-order default is now `diffrax.Dopri8`)."""
+(the name is historical: the 8th-order default is `diffrax.Dopri8`)."""
 
 DOPRI8_BELOW_RTOL_LOOPED = 1e-5
 """Where jaxnh's unrolled Tsit5 is not used (large vector fields, "lagrange"),
@@ -123,11 +60,10 @@ UNROLL_MAX_OPERATIONS = 300
 
 An unrolled step holds one copy of the vector field per stage, which XLA
 compiles and schedules separately: for a small mechanism (the variator's
-Appell form, ≈ 250 operations) that removes diffrax's per-stage loop
-overhead; for a large one (a 10-coordinate mechanism, Appell form: ≈ 1100;
-the Whipple bicycle: ≈ 7000) it multiplied the compile time (bicycle: 45 s
-against 7 s) and ran up to 2× slower than diffrax's Tsit5, which loops over
-its stages (benchmarks/RESULTS.md).
+Appell form) that removes diffrax's per-stage loop overhead; for a large one
+(a 10-coordinate mechanism, the Whipple bicycle) it multiplied the compile
+time and ran up to 2× slower than diffrax's Tsit5, which loops over its
+stages (benchmarks/RESULTS.md).
 """
 
 
@@ -138,18 +74,16 @@ def default_solver(rtol: float, operations: Optional[int] = None, method: str = 
         rtol: the relative tolerance of the solve.
         operations: size of the vector field in JAX operations
             (`vector_field_operations`); None means small.
-        method: the formulation ("lagrange", "appell", "substituted").
+        method: the formulation's name ("lagrange", "appell", "substituted").
 
     Returns the fastest choice at matched error on the work-precision
-    benchmarks (variator and a 10-coordinate mechanism, benchmarks/RESULTS.md,
-    "Default solver"):
+    benchmarks (benchmarks/RESULTS.md, "Default solver"):
     * small vector fields (at most `UNROLL_MAX_OPERATIONS`) in the "appell"
       and "substituted" forms: jaxnh's unrolled 5th-order
       `jaxnh.solvers.Tsit5`, and `diffrax.Dopri8` (8th order) for rtol <
       `DOP853_BELOW_RTOL`;
-    * large vector fields and "lagrange" (whose step gains nothing from
-      unrolling: 4.2 µs either way on the variator, benchmarks/field_cost.py):
-      `diffrax.Tsit5`, and `diffrax.Dopri8` for rtol < `DOPRI8_BELOW_RTOL_LOOPED`.
+    * large vector fields and "lagrange": `diffrax.Tsit5`, and
+      `diffrax.Dopri8` for rtol < `DOPRI8_BELOW_RTOL_LOOPED`.
     """
     small = operations is None or operations <= UNROLL_MAX_OPERATIONS
     if small and method != "lagrange":
@@ -171,38 +105,20 @@ def _count_operations(jaxpr) -> int:
 
 def vector_field_operations(form, t, y, params) -> int:
     """Number of JAX operations (jaxpr equations, nested ones included) in one
-    evaluation of the formulation's vector field: a size that does not depend
-    on values, so it can be taken under `jit` and `vmap`."""
-    def spec(x):
-        return jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) if eqx.is_array(x) else x
-
-    arrays, static = eqx.partition((form, t, y, params), eqx.is_array)
-    arrays = jax.tree_util.tree_map(spec, arrays)
-    # tracing a large vector field takes a while (the bicycle: ~0.1 s; the variator ~20 ms,
-    # eight times simulate's other per-call work), so the count is remembered per structure
-    try:
-        key = (jax.tree_util.tree_structure((arrays, static)), tuple(jax.tree_util.tree_leaves(arrays)),
-               tuple(type(x) if isinstance(x, (bool, int, float, complex)) else x
-                     for x in jax.tree_util.tree_leaves(static)))
-        hash(key)
-    except TypeError:  # an unhashable static leaf: count every time
-        key = None
-    if key is not None and key in _OPERATIONS_CACHE:
-        return _OPERATIONS_CACHE[key]
-
-    def field(a):
-        f, t_, y_, p = eqx.combine(a, static)
-        return f.vector_field(t_, y_, p)
-
-    n = _count_operations(jax.make_jaxpr(field)(arrays).jaxpr)
-    if key is not None:
-        if len(_OPERATIONS_CACHE) >= 256:
-            _OPERATIONS_CACHE.pop(next(iter(_OPERATIONS_CACHE)))
-        _OPERATIONS_CACHE[key] = n
-    return n
+    evaluation of a bound formulation's vector field: a size that does not
+    depend on values (call it while tracing: it only traces)."""
+    return _count_operations(jax.make_jaxpr(lambda y_: form.vector_field(t, y_, params))(y).jaxpr)
 
 
-_OPERATIONS_CACHE: dict = {}
+def field(t, y, args):
+    """The vector field of every jaxnh solve: args = (bound formulation, params, ok).
+
+    `ok` is False when the initial state failed a check: the field is then
+    zero, so the solve finishes in a few steps instead of wandering.
+    """
+    form, params, ok = args
+    dy = form.vector_field(t, y, params)
+    return jax.tree_util.tree_map(lambda d, x: jnp.where(ok, d, 0).astype(x.dtype), dy, y)
 
 
 def _stages_per_step(solver) -> Optional[int]:
@@ -212,16 +128,34 @@ def _stages_per_step(solver) -> Optional[int]:
     return tab.num_stages - (1 if tab.fsal else 0)
 
 
-def _check_ts(ts):
-    if ts.ndim != 1 or ts.shape[0] < 2:
-        raise ValueError(f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}")
-    if not isinstance(ts, jax.core.Tracer):
-        a = np.asarray(ts)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"ts must be finite; got non-finite entries at {np.nonzero(~np.isfinite(a))[0]}")
-        if not np.all(np.diff(a) > 0):
-            bad = int(np.nonzero(np.diff(a) <= 0)[0][0])
-            raise ValueError(f"ts must be strictly increasing; ts[{bad}]={a[bad]} ≥ ts[{bad + 1}]={a[bad + 1]}")
+@functools.lru_cache(maxsize=256)
+def _resolve(method, independent, stabilization, baumgarte_rate_given):
+    """The unbound formulation for the string/option aliases (cached: Python-side cost per call)."""
+    form = as_formulation(method, independent)
+    if stabilization not in STABILIZATIONS:
+        raise ValueError(f"stabilization must be one of {STABILIZATIONS}; got {stabilization!r}")
+    if stabilization is not None and not isinstance(form, Lagrange):
+        raise ValueError(
+            f"stabilization={stabilization!r} applies to method='lagrange' only: method={method!r} "
+            "integrates the independent velocities and cannot drift off the constraints."
+        )
+    if baumgarte_rate_given and stabilization != "baumgarte":
+        raise ValueError("baumgarte_rate is given but stabilization is not 'baumgarte'")
+    if stabilization == "baumgarte":
+        form = Lagrange(baumgarte="auto")
+    elif stabilization == "projection":
+        form = Lagrange(projection=True)
+    return form
+
+
+def _record(record, form) -> tuple:
+    record = (record,) if isinstance(record, str) else tuple(record)
+    for r in record:
+        if r not in RECORDABLE:
+            raise ValueError(f"record entries must be among {RECORDABLE}; got {r!r}")
+    if "multipliers" in record and not form.has_multipliers:
+        raise ValueError(f"record='multipliers' is not available for method={form.name!r} (it has no multipliers)")
+    return record
 
 
 def simulate(
@@ -230,16 +164,20 @@ def simulate(
     q0,
     qd0,
     ts,
-    method: str = "appell",
+    method="appell",
     solver=None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     record=(),
     *,
     independent=None,
+    saveat: Optional[diffrax.SaveAt] = None,
+    stepsize_controller: Optional[diffrax.AbstractStepSizeController] = None,
+    event: Optional[diffrax.Event] = None,
+    progress_meter: Optional[diffrax.AbstractProgressMeter] = None,
+    adjoint: Optional[diffrax.AbstractAdjoint] = None,
     max_steps: int = 100_000,
     dt0=None,
-    adjoint: Optional[diffrax.AbstractAdjoint] = None,
     throw: bool = True,
     stabilization: Optional[str] = None,
     baumgarte_rate=None,
@@ -248,191 +186,258 @@ def simulate(
 ) -> Solution:
     """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
 
+    Works the same eagerly and under `jax.jit`, `jax.vmap` and `jax.grad`:
+    nothing needs concrete values.
+
     Arguments:
         mech: the `Mechanism`.
         params: parameter pytree passed to every user function; its arrays
             are traced, so `jax.grad`/`jax.vmap` over it work.
         q0: initial coordinates (s,).
-        qd0: initial velocities (s,); must satisfy the constraints.
-        ts: report times (n,), strictly increasing, s; ts[0] is the start.
-        method: "appell" (default; state (q, independent velocities), the
-            constraints hold exactly), "lagrange" (multipliers, state (q, qd))
-            or "substituted" (the paper's wrong method, for comparison).
+        qd0: initial velocities (s,); must satisfy the constraints to √eps
+            relative to the velocity scale (else `STATUS.inconsistent_velocities`).
+        ts: report times (n,), strictly increasing, s; ts[0] is the start and
+            ts[-1] the end.
+        method: a formulation object — `jaxnh.Appell()` (the default; state
+            (q, independent velocities), the constraints hold exactly),
+            `jaxnh.Lagrange(baumgarte=..., projection=...)` (multipliers,
+            state (q, qd)), `jaxnh.Substituted()` (the paper's wrong method,
+            for comparison) — or its name "appell", "lagrange", "substituted".
         solver: a diffrax solver; default `default_solver(rtol, size of the
-            vector field, method)`: for small Appell vector fields jaxnh's
-            unrolled Tsit5, Dopri8 below rtol 1e-9; otherwise diffrax's Tsit5,
-            Dopri8 below rtol 1e-5.
-        rtol, atol: relative and absolute tolerances of the PID step control.
+            vector field, method)`.
+        rtol, atol: relative and absolute tolerances of the default PID step
+            control (ignored when `stepsize_controller` is given).
         record: any of "multipliers", "energy", "residual" — computed at the
-            report times only when asked.
-        independent: indices of independent velocities ("appell",
-            "substituted"); default from `mech.independent` or chosen from
-            the constraint matrix at the initial state (needs concrete
-            values: pass it under `jit`/`vmap`).
+            saved times only when asked.
+        independent: fixed indices of independent velocities ("appell",
+            "substituted"), the same as `method=jaxnh.Appell(independent=...)`;
+            default None: chosen and re-chosen inside the program.
+        saveat: a `diffrax.SaveAt` (default `SaveAt(ts=ts)`); with
+            `dense=True` the solution's `evaluate(t)` gives the motion at any t.
+        stepsize_controller: a diffrax step-size controller (default a
+            `PIDController(rtol, atol, dtmax=dtmax, step_ts=step_ts)`).
+        event: a `diffrax.Event` whose `cond_fn(t, y, args, **kwargs)` receives
+            `y = (q, qd)` and `args = params`; a terminating event stops the run
+            (the saved times after it are inf; `sol.event_mask` says which).
+        progress_meter: a diffrax progress meter (e.g. `diffrax.TqdmProgressMeter()`).
+        adjoint: how derivatives are computed. Default None: the one policy of
+            simulate and fit (`choose_adjoint`): `jaxnh.ForwardSensitivity()`
+            (sensitivities integrated with the state and included in the error
+            control; one augmented solve for grad, jacfwd and jvp) for at most
+            `jaxnh.FORWARD_MAX_PARAMETERS` float scalars in (params, q0, qd0)
+            and no dense output or event, else
+            `diffrax.RecursiveCheckpointAdjoint()`. Any diffrax adjoint may be passed.
         max_steps: step limit; reaching it is a failed solve.
         dt0: initial step, s (default: chosen automatically).
-        adjoint: how derivatives of the solve are computed. Default (None):
-            `jaxnh.ForwardSensitivity()` — the sensitivities integrated with
-            the state, one augmented solve whatever the mode (`jax.grad`,
-            `jax.jacfwd`, `jax.jvp`) — when (params, q0, qd0) hold at most
-            `jaxnh._sensitivity.FORWARD_MAX_PARAMETERS` float scalars, else
-            `diffrax.RecursiveCheckpointAdjoint()` (reverse mode only: use
-            `ForwardSensitivity()` explicitly with `jax.jacfwd` then). Any
-            diffrax adjoint may be passed.
-        throw: raise an error when the solve fails (default). With
-            `throw=False` (recommended under `vmap`) check `sol.status`.
-        stabilization: constraint drift control for "lagrange": None,
-            "baumgarte" (rate `baumgarte_rate`, 1/s, default one over the
-            median report interval) or "projection" (velocities projected
-            onto the constraints after every step). See `jaxnh.stabilize`.
+        throw: raise a `jaxnh.SimulationError` when the solve fails (default).
+            With `throw=False` (recommended under `vmap`) check `sol.status`.
+        stabilization: shortcut for Lagrange's drift control: "baumgarte"
+            (`Lagrange(baumgarte=rate)`, rate `baumgarte_rate`, 1/s, default one
+            over the median report interval) or "projection"
+            (`Lagrange(projection=True)`).
         baumgarte_rate: α for "baumgarte", 1/s.
         dtmax: largest step, s (default: unlimited). An adaptive solver only
             sees the right-hand side at its stages and can step over a change
             that is short compared with its step (a steep ratio law): keep
             dtmax below the width of such a change.
-        step_ts: times at which a step must end, s (e.g. the centre of a
-            known fast change, so that the solver cannot step over it).
+        step_ts: times at which a step must end, s.
 
     Returns:
         A `Solution`.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
-    record = (record,) if isinstance(record, str) else tuple(record)
-    for r in record:
-        if r not in RECORDABLE:
-            raise ValueError(f"record entries must be among {RECORDABLE}; got {r!r}")
-    if method == "substituted" and "multipliers" in record:
-        raise ValueError("record='multipliers' is not available for method='substituted' (it has no multipliers)")
-    if stabilization not in STABILIZATIONS:
-        raise ValueError(f"stabilization must be one of {STABILIZATIONS}; got {stabilization!r}")
-    if stabilization is not None and method != "lagrange":
-        raise ValueError(
-            f"stabilization={stabilization!r} applies to method='lagrange' only: method={method!r} "
-            "integrates the independent velocities and cannot drift off the constraints."
-        )
-    if baumgarte_rate is not None and stabilization != "baumgarte":
-        raise ValueError("baumgarte_rate is given but stabilization is not 'baumgarte'")
+    form = _resolve(method if isinstance(method, str) else method,
+                    None if independent is None else tuple(int(i) for i in independent),
+                    stabilization, baumgarte_rate is not None) if _hashable(method) else as_formulation(method, independent)
+    if baumgarte_rate is not None:
+        form = Lagrange(baumgarte=baumgarte_rate)
+    record = _record(record, form)
     q0 = as_float(q0)
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     ts = jnp.asarray(ts, dtype=q0.dtype)
-    _check_ts(ts)
-    eps = float(jnp.finfo(q0.dtype).eps)
-    if rtol < 10 * eps:
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}")
+    eps = float(np.finfo(q0.dtype).eps)
+    if not (rtol >= 10 * eps) or not (atol >= 0):
         raise ValueError(
-            f"rtol={rtol:g} is below what {q0.dtype} can resolve (machine epsilon {eps:.2g}); "
-            f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
+            f"rtol={rtol!r}, atol={atol!r}: rtol must be a number ≥ {10 * eps:.1g} (10 × machine epsilon of "
+            f"{q0.dtype}) and atol ≥ 0" + (" — or use float64 inputs" if q0.dtype == jnp.float32 else "")
         )
-    t0 = ts[0]
-    mech.check_shapes(q0, qd0, t0, params)
-    mech.check_values(q0, qd0, t0, params)
-    form = formulation(mech, method, q0, qd0, t0, params, independent)
-    if stabilization == "baumgarte":
-        rate = default_baumgarte_rate(ts) if baumgarte_rate is None else jnp.asarray(baumgarte_rate, q0.dtype)
-        form = Lagrange(mech, baumgarte=rate)
-    y0 = form.state(q0, qd0, t0, params)
-
-    if solver is None:
-        solver = default_solver(rtol, vector_field_operations(form, t0, y0, params), method)
-    adjoint = auto_adjoint(params, q0, qd0) if adjoint is None else adjoint
-    if stabilization == "projection":
-        project = VelocityProjection(mech)
-        # the forward-sensitivity solve passes args = (formulation, params)
-        solver = ProjectedSolver(solver, ParamsOf(project) if isinstance(adjoint, ForwardSensitivity) else project)
-    controller = diffrax.PIDController(
-        rtol=rtol, atol=atol, dtmax=dtmax,
-        step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
-    )
-    ys, result, stats, out = _integrate(
-        form, params, y0, ts, solver, controller, record, max_steps, dt0, adjoint, throw
-    )
-    q, qd = ys
-    return Solution(
-        ts=ts,
-        q=q,
-        qd=qd,
-        multipliers=out.get("multipliers"),
-        energy=out.get("energy"),
-        residual=out.get("residual"),
-        stats=stats,
-        status=result,
-        names=mech.coordinate_names(q0.shape[0]),
-    )
-
-
-@eqx.filter_jit
-def _integrate(form, params, y0, ts, solver, controller, record, max_steps, dt0, adjoint, throw):
-    """The compiled part of `simulate`: solve, unpack, and the recorded quantities."""
-    mech = form.mech
-
-    def vector_field(t, y, p):
-        dy = form.vector_field(t, y, p)
-        return jax.tree_util.tree_map(lambda d, x: d.astype(x.dtype), dy, y)
-
-    def form_vector_field(t, y, fp):  # the formulation passed as data, so its arrays are differentiated
-        form_, p = fp
-        dy = form_.vector_field(t, y, p)
-        return jax.tree_util.tree_map(lambda d, x: d.astype(x.dtype), dy, y)
-
-    # Non-finite input would make the adaptive loop reject steps until
-    # max_steps: detect it first, integrate a harmless stand-in, flag it.
-    finite = _all_finite((y0, ts, params))
-    y0_run = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.zeros_like(x)), y0)
-    params_run = jax.tree_util.tree_map(
-        lambda x: jnp.where(finite, x, jnp.ones_like(x)) if _is_float_array(x) else x, params
-    )
-    ts_run = jnp.where(finite, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
-    if throw:
-        y0_run = eqx.error_if(y0_run, ~finite, STATUS[STATUS.non_finite_input])
-    if isinstance(adjoint, ForwardSensitivity):
-        sol_ys, sol_result, sol_stats = solve_forward_sensitivity(
-            (form, params_run), y0_run, ts_run, controller,
-            vector_field=form_vector_field, solver=solver, max_steps=max_steps, dt0=dt0, throw=throw,
+    if q0.dtype not in (jnp.float32, jnp.float64):
+        raise ValueError(f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays")
+    if stepsize_controller is None:
+        stepsize_controller = diffrax.PIDController(
+            rtol=rtol, atol=atol, dtmax=dtmax, step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
         )
-    else:
-        sol_ys, sol_result, sol_stats = solve_at(
-            vector_field, solver, y0_run, params_run, ts_run, controller, max_steps, dt0, throw, adjoint
-        )
-    ys = jax.tree_util.tree_map(lambda x: jnp.where(finite, x, jnp.nan), sol_ys)
-    if isinstance(solver, ProjectedSolver):  # dense output between steps is unprojected
-        args = (form, params) if isinstance(solver.project, ParamsOf) else params
-        ys = jax.vmap(lambda t, y: solver.project(t, y, args))(ts, ys)
-    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, ts)
-    out = {}
-    if "multipliers" in record:
-        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(q, qd, ts)
-    if "energy" in record:
-        out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts)
-    if "residual" in record:
-        out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, ts)
-    stats = dict(sol_stats)
-    stages = _stages_per_step(solver)
-    if stages is not None:
-        stats["rhs_evaluations"] = stats["num_steps"] * stages
-    result = STATUS.where(finite, STATUS.promote(sol_result), STATUS.non_finite_input)
-    # Never a success with NaN or inf in what is reported.
-    bad_output = (result == STATUS.successful) & ~_all_finite((q, qd, out))
-    result = STATUS.where(bad_output, STATUS.non_finite_output, result)
-    if throw:
-        q = eqx.error_if(q, bad_output, STATUS[STATUS.non_finite_output])
-    split = getattr(form, "split", None)
-    if split is not None and split.dependent:
-        # A split that passes through a singular block gives a wrong motion with a
-        # successful solve (benchmarks/STABILITY.md, C): check it at the report times.
-        det = jax.vmap(lambda a, b, t: split.dependent_block_determinant(a, b, t, params))(q, qd, ts)
-        tiny = jnp.sqrt(jnp.finfo(det.dtype).eps)
-        singular = jnp.any((jnp.sign(det) != jnp.sign(det[0])) | (jnp.abs(det) < tiny))
-        singular = (result == STATUS.successful) & singular
-        result = STATUS.where(singular, STATUS.singular_split, result)
-        if throw:
-            q = eqx.error_if(q, singular, STATUS[STATUS.singular_split])
-    return (q, qd), result, stats, out
+    if dt0 is not None and not is_traced(dt0) and not float(dt0) > 0:
+        raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
+    traced = is_traced(params, q0, qd0, ts, form)
+    sol = _run(
+        mech, form, params, q0, qd0, ts, solver, stepsize_controller, saveat, event, progress_meter, adjoint,
+        dt0, record=record, max_steps=int(max_steps), rtol=float(rtol), graph_throw=bool(throw and traced),
+    )
+    if throw and not traced and np.ndim(sol.status._value) == 0 and int(np.asarray(sol.status._value)) != 0:
+        err = error_for(sol.status)
+        if isinstance(err, ValueError):  # name the argument and show the values, eagerly
+            try:
+                _check_ts(ts)
+                mech.check_values(q0, qd0, ts[0], params)
+            except ValueError as detail:
+                err = type(err)(f"{err}\nDetails: {detail}", sol.status)
+        raise err
+    return sol
+
+
+def _check_ts(ts):
+    """Raise naming the entries of concrete report times that are not finite or not increasing."""
+    a = np.asarray(ts)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"ts must be finite; got non-finite entries at {np.nonzero(~np.isfinite(a))[0].tolist()}")
+    if not np.all(np.diff(a) > 0):
+        bad = int(np.nonzero(np.diff(a) <= 0)[0][0])
+        raise ValueError(f"ts must be strictly increasing; ts[{bad}]={a[bad]:g} ≥ ts[{bad + 1}]={a[bad + 1]:g}")
+
+
+def _hashable(x) -> bool:
+    try:
+        hash(x)
+        return True
+    except TypeError:
+        return False
 
 
 def _is_float_array(x) -> bool:
-    return isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.inexact)
+    return eqx.is_inexact_array(x)
 
 
 def _all_finite(tree):
     leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+def _nan_gradients(bad, tree):
+    """A term that is 0 (value and derivative) when `bad` is False and NaN in every
+    derivative when it is True: added to outputs so that a failed solve or
+    non-finite input never gives a clean-looking gradient."""
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
+    total = sum((jnp.sum(x - jax.lax.stop_gradient(x)) for x in leaves), jnp.zeros(()))
+    return jnp.where(bad, jnp.nan, 0.0) * total
+
+
+class _UserEvent(eqx.Module):
+    """A user's event condition, called with (q, qd) and params."""
+
+    cond_fn: object
+
+    def __call__(self, t, y, args, **kwargs):
+        form, params, _ = args
+        q, qd = form.unpack(y, t, params)
+        return self.cond_fn(t, (q, qd), params, **kwargs)
+
+
+@eqx.filter_jit
+def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, progress_meter, adjoint, dt0, *,
+         record, max_steps, rtol, graph_throw):
+    """The compiled part of `simulate`."""
+    t0 = ts[0]
+    m = mech.check_shapes(q0, qd0, t0, params)
+    s = q0.shape[0]
+    if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
+        form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
+    form = form.bind(mech, s, m)
+    finite = _all_finite((q0, qd0, ts, params, form))
+    increasing = jnp.all(jnp.diff(ts) > 0)
+    q0r = jnp.where(finite, q0, 0.0)
+    qd0r = jnp.where(finite, qd0, 0.0)
+    tsr = jnp.where(finite & increasing, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
+    t0r = tsr[0]
+    checked, check_status = initial_checks(form, q0r, qd0r, t0r, params)
+    ok = finite & increasing & checked
+    y0 = form.state(q0r, qd0r, t0r, params)
+    y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
+    integrator = None
+    if solver is None:
+        operations = vector_field_operations(form, t0, y0, params)
+        solver = default_solver(rtol, operations, form.name)
+        lean = (LEAN and saveat is None and event is None and progress_meter is None
+                and operations <= UNROLL_MAX_OPERATIONS and lean_compatible(controller)
+                and isinstance(choose_adjoint(adjoint, params, q0, qd0), ForwardSensitivity))
+        if lean:  # the lean loop: same tableaus, none of diffeqsolve's machinery
+            integrator = LeanIntegrator("dop853" if rtol < DOP853_BELOW_RTOL else "tsit5")
+    diagnose = saveat is None  # with the default saving, keep the last state reached for a failure's diagnosis
+    if diagnose:
+        saveat = diffrax.SaveAt(ts=tsr, t1=True)
+    dense = bool(saveat.dense)
+    if event is not None:
+        event = diffrax.Event(jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
+                              root_finder=event.root_finder, direction=event.direction)
+    adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
+    args = (form, params, ok)
+    maps = form.step_maps()
+    kw = dict(t0=t0r, t1=tsr[-1], max_steps=max_steps, dt0=dt0, error_mask=form.error_mask())
+    event_mask = interpolation = None
+    if isinstance(adjoint, ForwardSensitivity):
+        if dense or event is not None or progress_meter is not None:
+            raise ValueError(
+                "adjoint=ForwardSensitivity() supports saving at report times only; dense output, events and "
+                "progress meters need a diffrax adjoint, e.g. diffrax.RecursiveCheckpointAdjoint()"
+            )
+        out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller,
+                                                  integrator=integrator, **kw)
+    else:
+        sol = diffrax_solve(field, solver, maps, y0, args, saveat, controller, adjoint=adjoint, event=event,
+                            progress_meter=progress_meter, **kw)
+        out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
+        event_mask, interpolation = sol.event_mask, sol.interpolation
+    if out_ts is None or ys is None:
+        raise ValueError("saveat must save at some times (ts=..., t1=True or steps=True) for simulate to report them")
+    if diagnose:
+        t_end, y_end = out_ts[-1], jax.tree_util.tree_map(lambda x: x[-1], ys)
+        out_ts, ys = out_ts[:-1], jax.tree_util.tree_map(lambda x: x[:-1], ys)
+    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, out_ts)
+    out = {}
+    if "multipliers" in record:
+        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(q, qd, out_ts)
+    if "energy" in record:
+        out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, out_ts)
+    if "residual" in record:
+        out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, out_ts)
+    stats = dict(stats)
+    stages = _stages_per_step(solver)
+    if stages is not None and "rhs_evaluations" not in stats:
+        stats["rhs_evaluations"] = stats["num_steps"] * stages
+    # the solve's own outcome; a terminating event is a success (event_mask says which)
+    result = STATUS.promote(result)
+    result = STATUS.where(result == STATUS.event_occurred, STATUS.successful, result)
+    if isinstance(form, Appell):
+        result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
+    if diagnose:
+        result = diagnose_stall(form, y_end, t_end, params, result)
+    status = STATUS.where(checked, result, check_status)
+    status = STATUS.where(increasing, status, STATUS.bad_report_times)
+    status = STATUS.where(finite, status, STATUS.non_finite_input)
+    reached = jnp.isfinite(out_ts)
+    bad_output = (status == STATUS.successful) & ~_all_finite(
+        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(reached, x), x, 0.0), (q, qd, out))
+    )
+    status = STATUS.where(bad_output, STATUS.non_finite_output, status)
+    failed = status != STATUS.successful
+    poison = _nan_gradients(failed, (params, q0, qd0, form))
+    nan_all = ~ok
+
+    def finish(x):
+        return jnp.where(nan_all, jnp.nan, x) + poison.astype(x.dtype)
+
+    q, qd = finish(q), finish(qd)
+    out = {k: finish(v) for k, v in out.items()}
+    if graph_throw:
+        q = raise_in_graph(q, status)
+    return Solution(
+        ts=out_ts, q=q, qd=qd, multipliers=out.get("multipliers"), energy=out.get("energy"),
+        residual=out.get("residual"), stats=stats, status=status, names=mech.coordinate_names(s),
+        dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
+        event_mask=event_mask,
+    )
+
+
+def _bcast(mask, x):
+    return mask.reshape(mask.shape + (1,) * (x.ndim - 1))

@@ -12,7 +12,7 @@ import pytest
 import jaxnh as nh
 from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
-from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
+from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, choose_adjoint
 from jaxnh._simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
 from jaxnh.solvers import Tsit5
 
@@ -52,21 +52,14 @@ def test_vector_field_size_is_counted_under_jit():
     assert jax.jit(lambda p: jnp.asarray(vector_field_operations(form, 0.0, y0, p)))(P) == n
 
 
-def test_vector_field_size_is_remembered_per_structure():
-    """simulate(solver=None) counts on every call; the count is cached by the structure,
-    shapes and dtypes (not the values), and a different formulation is counted anew."""
-    from jaxnh._simulate import _OPERATIONS_CACHE
-
-    form = nh.equations.formulation(MECH, "appell", Q0, qd0(P), 0.0, P, (0,))
-    y0 = form.state(Q0, qd0(P), 0.0, P)
-    n = vector_field_operations(form, 0.0, y0, P)
-    size = len(_OPERATIONS_CACHE)
-    p2 = jax.tree_util.tree_map(lambda x: x * 1.5 if eqx.is_inexact_array(x) else x, P)
-    y1 = jax.tree_util.tree_map(lambda a: a + 1.0, y0)
-    assert vector_field_operations(form, 0.3, y1, p2) == n and len(_OPERATIONS_CACHE) == size
-    lag = nh.equations.formulation(MECH, "lagrange", Q0, qd0(P), 0.0, P, None)
-    m = vector_field_operations(lag, 0.0, lag.state(Q0, qd0(P), 0.0, P), P)
-    assert len(_OPERATIONS_CACHE) == size + 1 and m != n
+def test_default_solver_is_chosen_inside_the_compiled_program():
+    """solver=None is resolved while tracing (no Python work per call): under jit the
+    result equals the eager one, and the unrolled Tsit5 is what the variator gets."""
+    f = lambda p: nh.simulate(MECH, p, Q0, qd0(p), TS, rtol=1e-6, atol=1e-8).q  # noqa: E731
+    np.testing.assert_array_equal(jax.jit(f)(P), f(P))
+    form = nh.equations.formulation(MECH, "appell", Q0, qd0(P), 0.0, P)
+    n = vector_field_operations(form, 0.0, form.state(Q0, qd0(P), 0.0, P), P)
+    assert isinstance(default_solver(1e-6, n, "appell"), Tsit5)
 
 
 @pytest.mark.parametrize("rtol", [1e-6, 1e-11])
@@ -93,9 +86,10 @@ def test_unrolled_tsit5_takes_diffrax_tsit5_steps():
 
 
 def test_auto_adjoint_by_parameter_count():
-    assert isinstance(auto_adjoint(P, Q0, Q0), ForwardSensitivity)
+    assert isinstance(choose_adjoint(None, P, Q0, Q0), ForwardSensitivity)
     many = {"w": jnp.zeros(FORWARD_MAX_PARAMETERS + 1)}
-    assert isinstance(auto_adjoint(many, Q0, Q0), diffrax.RecursiveCheckpointAdjoint)
+    assert isinstance(choose_adjoint(None, many, Q0, Q0), diffrax.RecursiveCheckpointAdjoint)
+    assert isinstance(choose_adjoint(None, P, Q0, Q0, dense=True), diffrax.RecursiveCheckpointAdjoint)
 
 
 def _loss(theta, w, static, adjoint):
@@ -105,19 +99,21 @@ def _loss(theta, w, static, adjoint):
 
 
 def test_forward_sensitivities_equal_reverse_mode_in_every_mode():
-    """grad (auto mode, under vmap) and jacfwd by forward sensitivities equal reverse mode.
+    """grad (under vmap) and jacfwd by forward sensitivities equal reverse mode.
 
-    Both differentiate the same discrete solution (same steps), so they agree to
-    rounding, far below the solver tolerance: rtol 1e-8 is a loose bound on that.
-    Three compilations in all (each gradient program costs seconds to compile).
+    Without sensitivity error control both differentiate the same discrete solution
+    (same steps), so they agree to rounding, far below the solver tolerance: rtol
+    1e-8 is a loose bound on that. (The default, with the sensitivities in the error
+    control, takes other steps: `test_default_gradient_matches_reverse_mode_to_tolerance`.)
     """
     theta, static = eqx.partition(P, nh.profiles.trainable(P))
     ws = jnp.array([1.0, 1.1])
     grad_rev = eqx.filter_jit(jax.grad(_loss, argnums=(0, 1)))
     g_rev = [grad_rev(theta, w, static, diffrax.RecursiveCheckpointAdjoint()) for w in ws]
     # default adjoint (None → forward sensitivities, P ≤ FORWARD_MAX_PARAMETERS), batched over w
-    g_auto = jax.vmap(jax.grad(_loss, argnums=(0, 1)), in_axes=(None, 0, None, None))(theta, ws, static, None)
-    g_fwd = jax.jacfwd(_loss, argnums=(0, 1))(theta, ws[0], static, ForwardSensitivity())
+    same_steps = ForwardSensitivity(error_control=False)
+    g_auto = jax.vmap(jax.grad(_loss, argnums=(0, 1)), in_axes=(None, 0, None, None))(theta, ws, static, same_steps)
+    g_fwd = jax.jacfwd(_loss, argnums=(0, 1))(theta, ws[0], static, same_steps)
     cases = [(jax.tree_util.tree_map(lambda x, i=i: x[i], g_auto), g_rev[i]) for i in range(2)] + [(g_fwd, g_rev[0])]
     for g, ref in cases:
         for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(ref)):
@@ -137,10 +133,20 @@ def test_forward_sensitivities_reach_arrays_inside_the_formulation():
                           baumgarte_rate=rate, adjoint=adjoint, rtol=1e-6, atol=1e-8, solver=diffrax.Tsit5())
         return jnp.sum(sol.qd**2)
 
-    a = jax.grad(loss)(3.0, ForwardSensitivity())
+    a = jax.grad(loss)(3.0, ForwardSensitivity(error_control=False))
     b = jax.grad(loss)(3.0, diffrax.RecursiveCheckpointAdjoint())
     assert float(jnp.abs(b)) > 0
     np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12)
+
+
+def test_default_gradient_matches_reverse_mode_to_tolerance():
+    """With the sensitivities in the error control (the default) the steps differ from
+    the plain solve's; both gradients approximate the exact one to the tolerance."""
+    theta, static = eqx.partition(P, nh.profiles.trainable(P))
+    g = jax.grad(_loss, argnums=(0, 1))(theta, 1.0, static, None)
+    ref = jax.grad(_loss, argnums=(0, 1))(theta, 1.0, static, diffrax.RecursiveCheckpointAdjoint())
+    for a, b in zip(jax.tree_util.tree_leaves(g), jax.tree_util.tree_leaves(ref)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6 * float(jnp.max(jnp.abs(b))))
 
 
 def test_forward_sensitivities_refuse_report_time_derivatives():

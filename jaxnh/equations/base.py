@@ -1,26 +1,58 @@
-"""The interface shared by all formulations of the equations of motion."""
+"""The interface shared by all formulations of the equations of motion.
+
+A formulation is an object (an `eqx.Module`, so a pytree: its arrays may be
+traced, batched and differentiated) that owns everything that differs between
+ways of writing the equations of motion:
+
+* the integrated state `y` and how coordinates and velocities are recovered
+  from it (`state`, `unpack`);
+* the vector field `dy/dt` and the accelerations and multipliers at a state;
+* which components of `y` count in the step-size error control (`error_mask`);
+* what happens around each step (`step_maps`): drift control for Lagrange's
+  equations (projection), the choice of independent velocities for Appell's;
+* the checks of an initial state that only it can make (`check`).
+
+A formulation is created unbound (`jaxnh.Appell()`, `jaxnh.Lagrange(baumgarte=2.0)`)
+and bound to a mechanism and its sizes by `bind`; `simulate`, `linearize` and
+`fit` only use this interface.
+"""
 
 from __future__ import annotations
 
 import abc
+import dataclasses
+from typing import Optional
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
-from ..linalg import mm, solve_psd_min_norm
 from .._mechanism import Mechanism
+from ..linalg import mm, solve_psd_min_norm
 from .terms import constraint_terms, mass_and_velocity_terms
 
 
 class Formulation(eqx.Module):
-    """A way to turn a `Mechanism` into accelerations.
+    """A way to turn a `Mechanism` into equations of motion (see the module docstring).
 
-    A formulation fixes the integrated state `y` (a tuple of arrays), how the
-    coordinates and velocities are recovered from it, and its vector field
-    `dy/dt`. `simulate`, `linearize` and `fit` only use this interface.
+    Attributes:
+        mech: the mechanism, once bound (`None` for a formulation as the user
+            creates it).
+        s: number of coordinates, once bound.
+        m: number of nonholonomic constraints (holonomic ones differentiated
+            included), once bound.
     """
 
-    mech: Mechanism
+    mech: Optional[Mechanism] = None
+    s: int = eqx.field(static=True, default=0)
+    m: int = eqx.field(static=True, default=0)
+
+    has_multipliers = True
+    name = "formulation"
+
+    def bind(self, mech: Mechanism, s: int, m: int):
+        """This formulation for `mech` with s coordinates and m constraints."""
+        return dataclasses.replace(self, mech=mech, s=s, m=m)
 
     @abc.abstractmethod
     def state(self, q, qd, t, params):
@@ -37,6 +69,25 @@ class Formulation(eqx.Module):
     @abc.abstractmethod
     def vector_field(self, t, y, params):
         """dy/dt for the integrated state y."""
+
+    def error_mask(self):
+        """Static weights, one per leaf of the state: 1.0 for components in the step-size
+        error control, 0.0 for bookkeeping; None for all."""
+        return None
+
+    def step_maps(self):
+        """A `jaxnh.StepMaps` applied around every step, or None."""
+        return None
+
+    def check(self, q, qd, t, params):
+        """(ok, STATUS) of formulation-specific checks of an initial state (in the graph)."""
+        from .._status import STATUS
+
+        return jnp.asarray(True), STATUS.successful
+
+    def describe_failure(self, status) -> Optional[str]:
+        """Extra words for a failure status specific to this formulation."""
+        return None
 
 
 def multipliers_from_accelerations(mech, q, qd, qdd, t, params):

@@ -12,7 +12,8 @@ nonholonomic constraint it is wrong: for the friction variator it doubles the
 velocity term, `2 J2 U21 U21' phi1'` instead of `J2 U21 U21' phi1'`
 (eq. 16 against the correct eq. 9), and does not conserve energy. It exists
 to reproduce the paper's comparison and to show the error; do not use it
-for anything else.
+for anything else. The partition of the velocities is handled as for
+`Appell` (the same state and the same re-choice during a run).
 """
 
 from __future__ import annotations
@@ -21,35 +22,28 @@ import jax
 import jax.numpy as jnp
 
 from ..linalg import mm, solve_spd
-from .base import Formulation
-from .split import VelocitySplit
+from .appell import Appell
 
 
-class Substituted(Formulation):
+class Substituted(Appell):
     """Lagrange's second kind applied to T with the constraints substituted (wrong)."""
 
-    split: VelocitySplit
+    has_multipliers = False
+    name = "substituted"
 
-    def state(self, q, qd, t, params):
-        return (q, self.split.independent_of(qd))
-
-    def unpack(self, y, t, params):
-        q, v = y
-        return q, self.split.velocities(q, v, t, params)
-
-    def _independent_accelerations(self, q, v, t, params):
+    def _independent_accelerations(self, q, v, t, params, part):
         mech, split = self.mech, self.split
-        qd, B, beta = split.velocities_and_rates(q, v, t, params)
+        qd, B, beta = split.velocities_and_rates(q, v, t, params, part)
 
         def T_star(q_, v_, t_):
-            return mech.kinetic(q_, split.velocities(q_, v_, t_, params), t_, params)
+            return mech.kinetic(q_, split.velocities(q_, v_, t_, params, part), t_, params)
 
         def p_star(q_, v_, t_):
             return jax.grad(T_star, argnums=1)(q_, v_, t_)
 
         _, dp = jax.jvp(lambda q_, t_: p_star(q_, v, t_), (q, t), (qd, jnp.ones_like(t)))
         M_star = jax.jacfwd(p_star, argnums=1)(q, v, t)
-        dTdq_I = split.independent_of(jax.grad(T_star, argnums=0)(q, v, t))
+        dTdq_I = split.independent_of(jax.grad(T_star, argnums=0)(q, v, t), part)
         Q = mech.generalized_forces(q, qd, t, params)
         vd = solve_spd(M_star, mm(B.T, Q) - dp + dTdq_I)
         return qd, mm(B, vd) + beta, vd
@@ -60,11 +54,4 @@ class Substituted(Formulation):
                 "method='substituted' has no multipliers: the constraint forces were "
                 "eliminated by substitution (which is what makes the method wrong)."
             )
-        v = self.split.independent_of(qd)
-        _, qdd, _ = self._independent_accelerations(q, v, t, params)
-        return qdd, None
-
-    def vector_field(self, t, y, params):
-        q, v = y
-        qd, _, vd = self._independent_accelerations(q, v, t, params)
-        return (qd, vd)
+        return super().accelerations(q, qd, t, params, multipliers=False)

@@ -134,7 +134,7 @@ class Problem(eqx.Module):
         """The map from independent to all velocities (paper eq. 17)."""
         s = self.n_coords
         m = s - len(self.independent)
-        return VelocitySplit.make(self.mech, s, m, self.independent)
+        return VelocitySplit(self.mech, s, m)
 
     def initial_state(self, theta, t0, params):
         """(q0, qd0) at the first sample from θ (dependent velocities from the constraints)."""
@@ -143,14 +143,14 @@ class Problem(eqx.Module):
         if k:
             q0 = q0.at[jnp.asarray(self.observed)].set(theta[P:P + k])
         v0 = theta[P + k:P + self.n_initial]
-        return q0, self.split().velocities(q0, v0, t0, params)
+        return q0, self.split().velocities(q0, v0, t0, params, self.independent)
 
     def segment_states(self, theta, t_starts, params):
         """(q, qd) at the start of segments 1.. (each (S−1, s))."""
         base = self.n_params + self.n_initial
         X = theta[base:].reshape(len(self.starts) - 1, self.n_segment_state)
         q, v = X[:, :self.n_coords], X[:, self.n_coords:]
-        qd = jax.vmap(lambda q_, v_, t_: self.split().velocities(q_, v_, t_, params))(q, v, t_starts)
+        qd = jax.vmap(lambda q_, v_, t_: self.split().velocities(q_, v_, t_, params, self.independent))(q, v, t_starts)
         return q, qd
 
     # --- simulation and residuals ----------------------------------------------

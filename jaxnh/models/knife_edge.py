@@ -15,10 +15,12 @@ Released at rest at the origin, spinning at φ̇ = ω, it turns uniformly
 
     x = (g sin α / 2ω²) sin² ωt,    y = (g sin α / 2ω²)(ωt − ½ sin 2ωt).
 
-The heading passes π/2 every half turn, where the dependent velocity ẏ of a
-fixed Appell split (independent ẋ, φ̇) cannot be solved (cos φ = 0): use
-"lagrange" for runs longer than a quarter turn, or restart Appell with the
-other split (independent ẏ, φ̇), see NOTES.md.
+The heading passes π/2 every half turn, where the dependent velocity ẏ of
+the split (independent ẋ, φ̇) cannot be solved (cos φ = 0). The default
+Appell formulation re-chooses the split during the run (ẋ becomes the
+dependent velocity near φ = π/2, ẏ again near φ = π), so it is valid for the
+whole motion; a fixed split (`mechanism(independent=(0, 2))`) fails there
+with `STATUS.singular_split` instead of returning a wrong motion.
 
 Units: m, kg, kg·m², rad, s.
 """
@@ -52,8 +54,9 @@ def acceleration_energy(q, qd, qdd, t, p):
     return 0.5 * p["m"] * (qdd[0] ** 2 + qdd[1] ** 2) + 0.5 * p["J"] * qdd[2] ** 2
 
 
-def mechanism(independent=(0, 2)) -> Mechanism:
-    """The knife edge; `independent` velocities (ẋ, φ̇) by default (see the module note)."""
+def mechanism(independent=None) -> Mechanism:
+    """The knife edge; `independent`: fixed independent velocities, or None (default) for
+    the automatic choice that changes during the run (see the module note)."""
     return Mechanism(
         kinetic, constraints=constraint, potential=potential, acceleration_energy=acceleration_energy,
         names=("x", "y", "phi"), independent=independent,

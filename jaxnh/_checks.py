@@ -1,0 +1,104 @@
+"""Checks of an initial state, inside the compiled program.
+
+Each check gives a `STATUS` instead of raising, so that the same outcome is
+reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
+
+* the mass matrix ∂²T/∂qd² is finite and positive definite (judged on its
+  Jacobi-scaled form D^-½ M D^-½, because Cholesky's accuracy does not
+  depend on the scaling of the coordinates: J1/J2 = 1e6 is fine, a
+  near-singular coupling is not);
+* every constraint involves the velocities (a zero row of ∂c/∂qd is a
+  holonomic constraint written as a nonholonomic one);
+* constraints declared linear in the velocities are (∂²c/∂qd² = 0);
+* qd0 satisfies the constraints to √eps relative to the velocity scale
+  `|A|·|qd0| + |c(q0, 0, t0)|` (an absolute test would pass a 50 % violation
+  of tiny velocities);
+* the formulation's own checks (Appell's: a regular dependent-velocity block).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ._status import STATUS
+from .linalg import cholesky
+
+__all__ = ["initial_checks", "mass_matrix_ok", "diagnose_stall"]
+
+STALLED_SPLIT_BELOW = 1e-4
+"""A failed solve whose last state has a dependent block this much worse conditioned than
+the best available one is reported as a singular split."""
+
+
+def mass_matrix_ok(mech, q, qd, t, params):
+    """Whether ∂²T/∂qd² at the state is finite and positive definite (Jacobi-scaled test)."""
+    eps = jnp.finfo(q.dtype).eps
+    tiny = jnp.finfo(q.dtype).tiny
+    M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
+    d = jnp.diag(M)
+    Ms = 0.5 * (M + M.T) / jnp.sqrt(jnp.outer(jnp.abs(d), jnp.abs(d)) + tiny)
+    Ms = jnp.where(jnp.isfinite(Ms), Ms, 0.0)
+    # Cholesky pivots of the unit-diagonal matrix: all > 1e3 eps (each pivot bounds the
+    # smallest eigenvalue from above, and a pivot ≤ 0 means not positive definite)
+    L = cholesky(Ms)
+    pivots = jnp.diag(L) ** 2
+    return jnp.all(jnp.isfinite(M)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(pivots)) & jnp.all(pivots > 1e3 * eps)
+
+
+def initial_checks(form, q, qd, t, params):
+    """(ok, STATUS) for the initial state (q, qd) at t of a bound formulation."""
+    mech = form.mech
+    eps = jnp.finfo(q.dtype).eps
+    tiny = jnp.finfo(q.dtype).tiny
+    pd = mass_matrix_ok(mech, q, qd, t, params)
+    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)
+    ok = pd
+    if form.m:
+        def c(v):
+            return mech.constraint(q, v, t, params)
+
+        c0 = c(qd)
+        A = jax.jacfwd(c)(qd)
+        a = c(jnp.zeros_like(qd))
+        velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
+        scale = jnp.abs(A) @ jnp.abs(qd) + jnp.abs(a)
+        consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= jnp.sqrt(eps) * scale + tiny)
+        if mech.nonlinear_constraints:
+            linear_ok = jnp.asarray(True)
+        else:
+            # an affine c satisfies c(2 qd) − 2 c(qd) + c(0) = 0 (a second difference, no derivatives)
+            probe = jnp.where(qd == 0, 1.0, qd)
+            second = c(2 * probe) - 2 * c(probe) + a
+            linear_ok = jnp.all(jnp.abs(second) <= 1e-8 * (2 * jnp.abs(A) @ jnp.abs(probe) + jnp.abs(a) + tiny))
+        form_ok, form_status = form.check(q, qd, t, params)
+        # the first failure in this order is reported
+        for good, item in ((~velocity_free, STATUS.velocity_free_constraint), (linear_ok, STATUS.constraints_nonlinear),
+                           (form_ok, form_status), (consistent, STATUS.inconsistent_velocities)):
+            status = STATUS.where(ok & ~good, item, status)
+            ok = ok & good
+    return ok, status
+
+
+def diagnose_stall(form, y, t, params, status):
+    """The status of a failed solve, refined by what is wrong at the last state reached.
+
+    A solve that stalls (step limit, step size collapse) where the equations
+    themselves break down says so: a mass matrix that is no longer positive
+    definite, or (Appell's equations with a fixed partition) a dependent block
+    that has become singular.
+    """
+    from .equations.appell import Appell
+    from .equations.split import partition_quality
+
+    stalled = (status != STATUS.successful) & (status != STATUS.singular_split)
+    q, qd = form.unpack(y, t, params)
+    finite = jnp.all(jnp.isfinite(q)) & jnp.all(jnp.isfinite(qd)) & jnp.isfinite(t)
+    q = jnp.where(finite, q, 0.0)
+    qd = jnp.where(finite, qd, 0.0)
+    pd = mass_matrix_ok(form.mech, q, qd, t, params)
+    status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
+    if isinstance(form, Appell) and form.m:
+        ratio = partition_quality(form.mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
+        status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
+    return status

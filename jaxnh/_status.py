@@ -1,0 +1,132 @@
+"""Why a simulation stopped: `STATUS`, and how a failure reaches the user.
+
+A failure is data: the compiled program returns a `STATUS` item next to the
+solution, with no host callback in it (so the program can be stored in JAX's
+persistent compilation cache and exported). `throw=True` turns a failure into
+a `SimulationError` raised in Python right after the call; when `simulate` is
+itself being traced (inside the user's `jit`, `vmap` or `grad`), the error is
+raised from inside the program instead (`equinox.error_if`).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["STATUS", "SimulationError", "InvalidInitialState", "describe", "error_for", "is_traced"]
+
+
+class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Why a simulation stopped: diffrax's results plus jaxnh's own."""
+
+    non_finite_input = (
+        "The initial state (q0, qd0), the report times or the parameters contain NaN or inf; "
+        "nothing was integrated. Check the argument that holds them."
+    )
+    bad_report_times = (
+        "ts must be strictly increasing (ts[0] is the start, ts[-1] the end of the run); nothing "
+        "was integrated."
+    )
+    mass_matrix_not_positive_definite = (
+        "The mass matrix ∂²T/∂qd² at the initial state is not positive definite (or is singular "
+        "to working precision, judged on its Jacobi-scaled form): check the inertia parameters "
+        "and the kinetic energy `kinetic`, or use float64."
+    )
+    inconsistent_velocities = (
+        "qd0 violates the nonholonomic constraints by more than √eps relative to the velocity "
+        "scale |A|·|qd0| + |c(q0, 0, t0)|. Use jaxnh.consistent_velocities(mech, q0, qd0, t0, "
+        "params) to project qd0 onto the constraints."
+    )
+    velocity_free_constraint = (
+        "A constraint does not depend on the velocities at the initial state (a row of "
+        "∂c/∂qd is zero): a constraint on the coordinates alone is holonomic; pass it as "
+        "Mechanism(holonomic=g) with g(q, t, params), not as `constraints`."
+    )
+    constraints_nonlinear = (
+        "The constraints are nonlinear in the velocities (∂²c/∂qd² ≠ 0 at the initial state): "
+        "pass nonlinear_constraints=True to Mechanism."
+    )
+    singular_split = (
+        "The dependent-velocity block of the constraint matrix is singular: the constraints are "
+        "redundant (rank of ∂c/∂qd < m), or the fixed choice `independent=` cannot be solved for "
+        "the dependent velocities at the initial state or became singular during the run. Pass "
+        "independent=None (the default), which chooses and re-chooses the partition during the "
+        "run, or use method='lagrange' (which accepts redundant constraints)."
+    )
+    mass_matrix_became_singular = (
+        "The solve stalled where the mass matrix ∂²T/∂qd² is no longer positive definite (singular "
+        "or indefinite at the last state reached): the equations of motion break down there. Check "
+        "the kinetic energy and the parameters along the motion."
+    )
+    non_finite_output = (
+        "The solve finished but a reported value (coordinates, velocities, multipliers, energy "
+        "or constraint residual) is NaN or inf: an overflow, or the equations became singular "
+        "(a mass matrix that lost positive definiteness during the run)."
+    )
+    stiff = (
+        "The problem is stiff for an explicit solver: its steps were limited by stability, not "
+        "accuracy (step × spectral radius of the Jacobian beyond the explicit stability bound). "
+        "The values may look fine but derivatives through such a solve are unreliable. Use an "
+        "implicit solver, e.g. solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, "
+        "atol=atol))."
+    )
+
+
+MAX_STEPS_ADVICE = (
+    " If the step count is large because the problem is stiff (strong damping, a large "
+    "Baumgarte rate), use an implicit solver with a Newton root finder, e.g. "
+    "solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol)); "
+    "otherwise raise max_steps."
+)
+
+
+class SimulationError(RuntimeError):
+    """A failed simulation with `throw=True`; `.status` holds the `STATUS` item."""
+
+    def __init__(self, message: str, status=None):
+        super().__init__(message)
+        self.status = status
+
+
+class InvalidInitialState(SimulationError, ValueError):
+    """A simulation refused because its input failed a check (non-finite values, a mass
+    matrix that is not positive definite, inconsistent velocities, ...)."""
+
+
+INPUT_FAILURES = ("non_finite_input", "bad_report_times", "mass_matrix_not_positive_definite", "inconsistent_velocities",
+                  "velocity_free_constraint", "constraints_nonlinear")
+
+
+def error_for(status) -> SimulationError:
+    """The exception for a concrete failed status."""
+    code = int(np.asarray(status._value))
+    names = [n for n in INPUT_FAILURES if int(STATUS._name_to_item[n]._value) == code]
+    return (InvalidInitialState if names else SimulationError)(describe(status), status)
+
+
+def describe(status) -> str:
+    """'success', or the failure in words, for a concrete (unbatched) status."""
+    code = int(np.asarray(status._value))
+    if code == int(STATUS.successful._value):
+        return "success"
+    msg = f"solve failed: {STATUS[STATUS._from_index(code) if hasattr(STATUS, '_from_index') else status]}"
+    if code in (int(STATUS.max_steps_reached._value), int(STATUS.max_steps_rejected._value)):
+        msg += MAX_STEPS_ADVICE
+    if code == int(STATUS.singular._value):
+        msg += (" (a linear solve broke down: with jaxnh's formulations this means the mass matrix or the "
+                "dependent-velocity block became singular during the run)")
+    return msg
+
+
+def is_traced(*trees) -> bool:
+    """Whether any array leaf is a tracer (simulate is inside jit/vmap/grad)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+def raise_in_graph(x, status):
+    """`x`, with an error raised from inside the program when `status` is a failure."""
+    failed = status != STATUS.successful
+    return eqx.error_if(x, failed, status)

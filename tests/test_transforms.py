@@ -1,0 +1,270 @@
+"""simulate is transform-native: the default method under jit, vmap and grad with no hints;
+checks in the graph give the same status eagerly and under jit/vmap; Appell's partition is
+chosen and re-chosen inside the program; events, dense output and `ode` pass diffrax through."""
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pytest
+
+import jaxnh as nh
+from jaxnh.models import knife_edge as K
+
+
+# --- the README variator -------------------------------------------------------------------
+
+
+def T(q, qd, t, p):
+    return 0.5 * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2)
+
+
+def U21(t):
+    return 1.0 + 0.4 * jnp.sin(jnp.pi * t)
+
+
+def rolling(q, qd, t, p):
+    return jnp.stack([U21(t) * qd[0] - qd[1]])
+
+
+def torques(q, qd, t, p):
+    return jnp.stack([p["M1"], p["M2"]])
+
+
+MECH = nh.Mechanism(T, constraints=rolling, forces=torques, names=("phi1", "phi2"))
+P = {"J1": 0.02, "J2": 0.05, "M1": 0.3, "M2": -0.1}
+TS = jnp.linspace(0.0, 3.0, 31)
+QD0 = jnp.array([2.0, 2.0])
+
+
+def final_angle(p):
+    return nh.simulate(MECH, p, jnp.zeros(2), QD0, TS).q[-1, 0]
+
+
+def test_readme_example_under_jit_vmap_grad_without_hints():
+    eager = final_angle(P)
+    np.testing.assert_allclose(jax.jit(final_angle)(P), eager, rtol=1e-12, atol=0)
+    J2s = jnp.array([0.04, 0.05, 0.06])
+    batched = jax.vmap(lambda j: final_angle({**P, "J2": j}))(J2s)
+    loop = jnp.stack([final_angle({**P, "J2": j}) for j in J2s])
+    np.testing.assert_allclose(batched, loop, rtol=1e-12, atol=0)
+    g = jax.grad(lambda j: final_angle({**P, "J2": j}))(0.05)
+    # central differences, h chosen for the rtol-1e-8 solve (truncation h² ≈ 1e-10, noise 1e-8/h ≈ 1e-5)
+    h = 1e-4
+    fd = (final_angle({**P, "J2": 0.05 + h}) - final_angle({**P, "J2": 0.05 - h})) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+# --- the partition of Appell's velocities through a singular block ----------------------
+
+
+def cos_ratio(q, qd, t, p):
+    return jnp.stack([1.5 * jnp.cos(t) * qd[0] - qd[1]])
+
+
+COS = nh.Mechanism(lambda q, qd, t, p: 0.5 * (0.02 * qd[0] ** 2 + 0.05 * qd[1] ** 2), constraints=cos_ratio,
+                   forces=lambda q, qd, t, p: jnp.stack([0.1, 0.0 * q[0]]))
+
+
+@pytest.fixture(scope="module")
+def cos_runs():
+    ts = jnp.array([0.0, 2 * jnp.pi])
+    kw = dict(rtol=1e-10, atol=1e-12)
+
+    def run(qd0, method):
+        return nh.simulate(COS, {}, jnp.zeros(2), qd0, ts, method, **kw)
+
+    qd0 = jnp.array([[1.0, 1.5], [0.5, 0.75]])
+    out = {m: [run(x, m) for x in qd0] for m in ("appell", "lagrange")}
+    out["jit"] = jax.jit(lambda x: run(x, "appell").q)(qd0[0])
+    out["vmap"] = jax.vmap(lambda x: run(x, "appell").q)(qd0)
+    out["fixed"] = nh.simulate(COS, {}, jnp.zeros(2), qd0[0], ts, "appell", independent=(1,), throw=False, **kw)
+    return out
+
+
+def test_appell_through_a_singular_block_agrees_with_lagrange(cos_runs):
+    """The ratio 1.5 cos t passes through zero at t = π/2 and 3π/2 between the two report
+    times: the partition chosen at t = 0 (φ2' dependent) stays valid, but the block of
+    φ1' (if it were dependent) goes singular; both halves of the motion must agree with
+    Lagrange's multiplier form at rtol 1e-10 to 1e-8."""
+    for a, l in zip(cos_runs["appell"], cos_runs["lagrange"]):
+        assert a.message == "success"
+        np.testing.assert_allclose(a.q, l.q, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(a.qd, l.qd, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(cos_runs["jit"], cos_runs["lagrange"][0].q, atol=1e-8)
+    for i in range(2):
+        np.testing.assert_allclose(cos_runs["vmap"][i], cos_runs["lagrange"][i].q, atol=1e-8)
+
+
+def test_a_fixed_partition_that_goes_singular_fails_clearly(cos_runs):
+    sol = cos_runs["fixed"]
+    assert sol.status == nh.STATUS.singular_split
+    assert "singular" in sol.message
+
+
+def test_knife_edge_through_heading_pi_over_2_with_coarse_report_times():
+    """Released spinning, the blade's heading passes π/2, π, 3π/2: whichever of ẋ, ẏ is
+    dependent becomes unsolvable somewhere. The partition is re-chosen during the run;
+    the motion matches the closed form (Bloch §1.6) and Lagrange's, under vmap too."""
+    p, w = K.default_params(), 1.3
+    ts = jnp.array([0.0, 1.0, 2.5, 3 * jnp.pi / w])
+    mech = K.mechanism()
+
+    def run(omega, method):
+        return nh.simulate(mech, p, jnp.zeros(3), jnp.stack([0.0, 0.0, omega]), ts, method, rtol=1e-10, atol=1e-12)
+
+    a, l = run(w, "appell"), run(w, "lagrange")
+    q_ref, qd_ref = K.closed_form(p, ts, w)
+    np.testing.assert_allclose(a.q, q_ref, atol=1e-8)
+    np.testing.assert_allclose(a.qd, qd_ref, atol=1e-8)
+    np.testing.assert_allclose(a.q, l.q, atol=1e-8)
+    omegas = jnp.array([w, 0.9])
+    qv = jax.vmap(lambda o: run(o, "appell").q)(omegas)
+    for i, o in enumerate(omegas):
+        np.testing.assert_allclose(qv[i], K.closed_form(p, ts, o)[0], atol=1e-8)
+
+
+# --- every check of the initial state, eagerly and under jit and vmap -------------------
+
+
+def c_adversarial(q, qd, t, p):
+    """Two constraints whose defects are switched on by parameters: a = b = 0 removes the
+    velocities from the first (a holonomic constraint in disguise), n ≠ 0 makes it nonlinear,
+    r = 1 repeats it in the second (redundant constraints)."""
+    c1 = p["a"] * qd[0] + p["b"] * qd[1] + p["h"] * (q[0] - q[1]) + p["n"] * qd[0] ** 2
+    c2 = p["r"] * (p["a"] * qd[0] + p["b"] * qd[1]) + (1 - p["r"]) * qd[2]
+    return jnp.stack([c1, c2])
+
+
+ADV = nh.Mechanism(lambda q, qd, t, p: 0.5 * jnp.sum(p["m"] * qd**2), constraints=c_adversarial)
+GOOD = {"a": 1.0, "b": -1.0, "h": 0.0, "n": 0.0, "r": 0.0, "m": jnp.array([1.0, 2.0, 3.0])}
+QD_GOOD = jnp.array([1.0, 1.0, 0.0])
+
+CASES = {
+    "non_finite_input": ({"m": jnp.array([1.0, jnp.nan, 3.0])}, QD_GOOD, jnp.zeros(3)),
+    "mass_matrix_not_positive_definite": ({"m": jnp.array([1.0, -2.0, 3.0])}, QD_GOOD, jnp.zeros(3)),
+    "velocity_free_constraint": ({"a": 0.0, "b": 0.0, "h": 1.0}, QD_GOOD, jnp.zeros(3)),
+    "constraints_nonlinear": ({"n": 1.0}, jnp.array([1.0, 2.0, 0.0]), jnp.zeros(3)),
+    "singular_split": ({"r": 1.0}, QD_GOOD, jnp.zeros(3)),
+    "inconsistent_velocities": ({}, jnp.array([2e-9, 1e-9, 0.0]), jnp.zeros(3)),
+    "successful": ({}, QD_GOOD, jnp.zeros(3)),
+}
+
+
+def _adv(p_change, qd0, q0):
+    p = {**GOOD, **p_change}
+    return p, q0, qd0
+
+
+def _solve(p, q0, qd0):
+    return nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3), throw=False)
+
+
+@pytest.fixture(scope="module")
+def check_outcomes():
+    names = list(CASES)
+    inputs = [_adv(*CASES[n]) for n in names]
+    eager = [_solve(*x) for x in inputs]
+    jitted = jax.jit(_solve)
+    jit = [jitted(*x) for x in inputs]
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *inputs)
+    batch = jax.vmap(_solve)(*stacked)
+    return names, inputs, eager, jit, batch
+
+
+def test_every_check_gives_the_same_status_eagerly_under_jit_and_vmap(check_outcomes):
+    names, _, eager, jit, batch = check_outcomes
+    messages = batch.messages
+    for i, name in enumerate(names):
+        expected = getattr(nh.STATUS, name)
+        assert eager[i].status == expected, (name, eager[i].message)
+        assert jit[i].status == expected, name
+        assert batch.status[i] == expected, name
+        assert eager[i].message == jit[i].message == messages[i], name
+        if name != "successful":
+            assert bool(jnp.all(jnp.isnan(eager[i].q))), name  # never a plausible answer
+
+
+def test_failed_checks_raise_with_throw_true(check_outcomes):
+    names, inputs, *_ = check_outcomes
+    for name, (p, q0, qd0) in zip(names, inputs):
+        if name == "successful":
+            continue
+        with pytest.raises(nh.SimulationError, match=str(nh.STATUS[getattr(nh.STATUS, name)])[:30]):
+            nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3))
+
+
+def test_batched_message_counts_outcomes(check_outcomes):
+    *_, batch = check_outcomes
+    assert batch.message.startswith(f"{len(CASES) - 1} of {len(CASES)} failed")
+
+
+# --- NaN in, NaN out; a failed solve gives NaN gradients ----------------------------------
+
+
+def test_nan_parameter_gives_nan_gradient_not_zero():
+    g = jax.grad(lambda j: nh.simulate(MECH, {**P, "J1": j}, jnp.zeros(2), QD0, TS, throw=False).q[-1, 0])(jnp.nan)
+    assert bool(jnp.isnan(g))
+
+
+def test_failed_solve_gives_nan_gradient_in_reverse_mode():
+    def f(j):
+        sol = nh.simulate(MECH, {**P, "J1": j}, jnp.zeros(2), QD0, TS, throw=False, max_steps=3,
+                          adjoint=diffrax.RecursiveCheckpointAdjoint())
+        return jnp.sum(sol.q[:2])
+
+    assert bool(jnp.isnan(jax.grad(f)(0.02)))
+
+
+# --- events, dense output and ode ----------------------------------------------------------
+
+
+def test_event_time_is_a_root_of_the_dense_output():
+    """Stop when phi1 reaches 3 rad; the event time solves phi1(t) = 3 on the dense output."""
+    target = 3.0
+    event = diffrax.Event(lambda t, y, p, **kw: y[0][0] - target, root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
+    sol = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS, event=event, rtol=1e-10, atol=1e-12,
+                      saveat=diffrax.SaveAt(ts=TS, t1=True, dense=True))
+    t_event = sol.ts[-1]
+    assert 0.0 < float(t_event) < float(TS[-1]) and bool(sol.event_mask)
+    lo, hi = float(t_event) - 0.1, float(t_event) + 0.1
+    for _ in range(60):  # bisection on the dense output
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if float(sol.evaluate(mid)[0][0]) < target else (lo, mid)
+    assert abs(float(t_event) - 0.5 * (lo + hi)) < 1e-8
+    assert bool(jnp.all(jnp.isinf(sol.ts[:-1][TS > t_event])))
+
+
+def test_ode_with_diffeqsolve_equals_simulate():
+    o = nh.ode(MECH, P, jnp.zeros(2), QD0, 0.0)
+    sol = diffrax.diffeqsolve(o.term, o.solver(diffrax.Tsit5()), 0.0, float(TS[-1]), None, o.y0, args=o.args,
+                              saveat=diffrax.SaveAt(ts=TS),
+                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12, norm=o.error_norm))
+    q, qd = jax.vmap(o.unpack)(sol.ys, sol.ts)
+    ref = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS, rtol=1e-10, atol=1e-12, solver=diffrax.Tsit5())
+    np.testing.assert_allclose(q, ref.q, atol=1e-12)
+    np.testing.assert_allclose(qd, ref.qd, atol=1e-12)
+
+
+# --- holonomic constraints handled by Mechanism ------------------------------------------
+
+
+def test_holonomic_constraint_in_mechanism():
+    """A pendulum of length 1 written in Cartesian (x, y) with g = x² + y² − 1: period of
+    small oscillations 2π/√(g/L); the holonomic constraint stays satisfied to the tolerance,
+    Appell equals Lagrange."""
+    grav = 9.81
+    mech = nh.Mechanism(lambda q, qd, t, p: 0.5 * jnp.sum(qd**2), potential=lambda q, t, p: grav * q[1],
+                        holonomic=lambda q, t, p: jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0]))
+    th0 = 0.01
+    q0 = jnp.array([jnp.sin(th0), -jnp.cos(th0)])
+    period = 2 * jnp.pi / jnp.sqrt(grav)
+    ts = jnp.linspace(0.0, period, 5)
+    a = nh.simulate(mech, {}, q0, jnp.zeros(2), ts, "appell", rtol=1e-10, atol=1e-12)
+    l = nh.simulate(mech, {}, q0, jnp.zeros(2), ts, "lagrange", rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(a.q, l.q, atol=1e-8)
+    # small-angle period: the finite amplitude lengthens it by θ0²/16 (relative)
+    np.testing.assert_allclose(a.q[-1], q0, atol=2 * th0 * th0**2)
+    g = jax.vmap(lambda q: mech.holonomic_residual(q, 0.0, {}))(a.q)
+    assert float(jnp.max(jnp.abs(g))) < 1e-8
