@@ -229,7 +229,7 @@ def _local_rates(t, y, i0, window=RATE_WINDOW):
 def _velocity_map(problem: Problem, q, t, params):
     """b, B with observed velocities = B v + b for independent velocities v."""
     def f(v):
-        return problem.split().velocities(q, v, t, params)[jnp.asarray(problem.observed)]
+        return problem.split().velocities(q, v, t, params, problem.independent)[jnp.asarray(problem.observed)]
 
     v0 = jnp.zeros(len(problem.independent), q.dtype)
     return f(v0), jax.jacfwd(f)(v0)
