@@ -21,6 +21,7 @@ import optimistix as optx
 import jax.numpy as jnp
 import numpy as np
 
+from .._sensitivity import FORWARD_MAX_PARAMETERS
 from ..equations.split import choose_independent
 from .._mechanism import Mechanism
 from .data import Record, noise_level
@@ -41,7 +42,7 @@ ODE_ERROR_STD = 0.05  # rtol="auto": the solver's error may move no estimate by 
 # errors: the precision at which Levenberg–Marquardt stops (problem.GN_STOP_TOL); measured on the embedded record
 # at rtol 1e-8: 0.03 (no tightening), on issue 18's informative record: see benchmarks/EXPERIMENT.md
 AUTO_REFINEMENTS = 3  # rtol="auto": at most this many tightenings
-FORWARD_MAX_UNKNOWNS = 32  # optax: forward-mode gradients up to this many unknowns, reverse above
+FORWARD_MAX_UNKNOWNS = FORWARD_MAX_PARAMETERS  # the one policy of simulate and fit (jaxnh.choose_adjoint)
 RATE_WINDOW = 15  # samples used to estimate a starting velocity from the data
 
 
