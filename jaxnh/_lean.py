@@ -435,23 +435,23 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
             # written straight-line, without an inner loop (which under vmap would select the whole
             # output buffer on every iteration)
             need = accept & (ts[jnp.minimum(k, r - 1)] <= t1) & (k < r)
-            if tab.dense_evals:
-                def prep():
-                    return tab.dense_prepare(vf, t, h, y, y1, fs, args)[0]
+            idx = [jnp.minimum(k + j, r - 1) for j in range(_INTERIOR_REPORTS + 1)]
 
-                shape = jax.eval_shape(prep)
-                coeffs = lax.cond(_any(need), prep, lambda: jnp.zeros(shape.shape, shape.dtype))
-                n_evals = n_evals + jnp.where(need, tab.dense_evals, 0)
-            else:
+            def rows():  # the state at the next report times, by the continuous extension
                 coeffs = tab.dense_prepare(vf, t, h, y, y1, fs, args)[0]
-            hh = jnp.where(h == 0, 1, h)
-            for _ in range(_INTERIOR_REPORTS + 1):
-                kk = jnp.minimum(k, r - 1)
-                tk = ts[kk]
-                valid = accept & (k < r) & (tk <= t1)
-                yk = jnp.where(tk == t1, y1_end, tab.dense_eval(coeffs, y, (tk - t) / hh))
-                ys_out = ys_out.at[kk].set(jnp.where(valid, yk, ys_out[kk]))
+                hh = jnp.where(h == 0, 1, h)
+                return jnp.stack([jnp.where(ts[i] == t1, y1_end, tab.dense_eval(coeffs, y, (ts[i] - t) / hh))
+                                  for i in idx])
+
+            # computed only in steps that hold a report time (for any member of a vmap batch); the
+            # rows are written outside the conditional, in place
+            yks = lax.cond(_any(need), rows, lambda: jnp.zeros((len(idx), n), dtype))
+            k0 = k
+            for j, i in enumerate(idx):
+                valid = accept & (k0 + j < r) & (ts[i] <= t1)
+                ys_out = ys_out.at[i].set(jnp.where(valid, yks[j], ys_out[i]))
                 k = k + valid.astype(jnp.int32)
+            n_evals = n_evals + jnp.where(need, tab.dense_evals, 0)
 
         n_steps = c.n_steps + 1
         # the step cannot advance t: after a rejection the next step would not move t, or this

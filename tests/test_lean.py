@@ -164,6 +164,21 @@ def test_repeated_and_single_report_times(report):
     np.testing.assert_array_equal(one.ys, [[1.0]])
 
 
+@pytest.mark.parametrize("method", list(METHODS))
+def test_report_times_denser_than_steps(method):
+    # 501 report times over a solve that needs ~20-60 natural steps: every step holds several of them
+    ts = jnp.linspace(0.0, 5.0, 501)
+
+    def f(t, y, a):
+        return -y
+
+    s = lean_solve(f, jnp.array([1.0]), None, ts, method=method, rtol=1e-10, atol=1e-12, report="interpolate")
+    assert int(s.status) == 0
+    np.testing.assert_allclose(s.ys[:, 0], np.exp(-np.asarray(ts)), rtol=2e-8)
+    # at most 2 report times strictly inside a step: at least 500 / 3 steps
+    assert int(s.stats["num_accepted_steps"]) >= 167
+
+
 def test_float32():
     ts = jnp.linspace(0.0, 10.0, 11, dtype=jnp.float32)
     s = jax.jit(lambda y0: lean_solve(oscillator, y0, jnp.float32(4.0), ts, rtol=1e-5, atol=1e-7))(
