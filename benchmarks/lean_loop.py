@@ -528,7 +528,33 @@ def section(R: dict | None) -> list:
          "row except the last JAX one. CPU times, medians over interleaved rounds "
          "(`python -m benchmarks.lean_loop`). Per step: time / step attempts. The bare loop is the reference of "
          "the ‘within 2×’ target (same tableau); numba is the limit.", "",
-         "### One trajectory", ""]
+         ]
+    S_, B_ = R["single"], R["batch"]
+
+    def row(goal, label, value, ok, fmt):
+        return [label, goal, "—" if value is None else fmt(value), "—" if value is None else ("yes" if ok(value) else "no")]
+
+    t = []
+    for tab in ("dop853", "tsit5"):
+        for mode in ("step", "interp"):
+            a, b = S_.get(f"lean {tab} ({mode})", {}), S_.get(f"bare while_loop {tab}", {})
+            v = a["per_step"] / b["per_step"] if a.get("per_step") and b.get("per_step") else None
+            t.append(row("≤ 2×", f"step cost, lean {tab} ({mode}) / bare while_loop {tab}", v, lambda x: x <= 2,
+                         lambda x: f"{x:.2f}×"))
+    for name in ("lean dop853 (step)", "lean dop853 (step), jaxnh appell field"):
+        v = S_.get(name, {}).get("scipy_over")
+        t.append(row("≥ 25×", f"one trajectory, SciPy DOP853 / {name}", v, lambda x: x >= 25, lambda x: f"{x:.1f}×"))
+        v = B_.get(name, {}).get("scipy_over")
+        t.append(row("≥ 150×", f"batch of {c['batch']}, SciPy DOP853 / {name} per trajectory", v, lambda x: x >= 150,
+                     lambda x: f"{x:.0f}×"))
+    lim = S_.get("numba dop853 (limit)", {}).get("per_step")
+    t.append(["limit row: numba DOP853 per step", "present", _fmt_t(lim) if lim else "numba not installed",
+              "yes" if lim else "no"])
+    gpu = [k for k in B_ if "GPU" in k]
+    t.append(["GPU row", "when a GPU is present", ", ".join(gpu) if gpu else "no GPU here", "—"])
+    L += [table(["issue 16 target", "goal", "measured", "met"], t), "",
+          "The figures of every row follow, then the choice of report mode and the fixed costs.", "",
+          "### One trajectory", ""]
     rows = []
     for name, r in R["single"].items():
         tab = "dop853" if ("dop853" in name.lower() or "DOP853" in name) else ("tsit5" if "tsit5" in name.lower()
