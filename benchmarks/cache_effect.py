@@ -27,6 +27,7 @@ import sys
 import tempfile
 import time
 
+
 USER = r"""
 import time, os, json
 t0 = time.perf_counter()
@@ -66,8 +67,9 @@ def run_user(env):
 
 def run_fit(env):
     t0 = time.perf_counter()
-    out = subprocess.run([sys.executable, "-m", "jaxnh.cli", "fit", "--quiet"], capture_output=True, text=True,
-                         env=env, timeout=900)
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxnh.cli", "fit", "--quiet"], capture_output=True, text=True, env=env, timeout=900
+    )
     el = time.perf_counter() - t0
     if out.returncode not in (0, 1):
         raise RuntimeError(out.stderr[:1500] + " ... " + out.stderr[-1500:])
@@ -83,8 +85,12 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fit", action="store_true", help="also time `jaxnh fit` cold and warm")
     ap.add_argument("--eqx", nargs="+", default=["default", "nan"], help="EQX_ON_ERROR values to try")
-    ap.add_argument("--min", nargs="+", default=["1.0", "default", "0"],
-                    help="write thresholds to try (s; 'default' = jaxnh's MIN_COMPILE_TIME_SECS)")
+    ap.add_argument(
+        "--min",
+        nargs="+",
+        default=["1.0", "default", "0"],
+        help="write thresholds to try (s; 'default' = jaxnh's MIN_COMPILE_TIME_SECS)",
+    )
     ap.add_argument("--no-off", action="store_true", help="skip the cache-off case")
     args = ap.parse_args()
     cases = [(e, m) for e in args.eqx for m in args.min]
@@ -106,11 +112,16 @@ def main():
                 r["cold_call"].append(c["total"] - c["import"])
                 r["warm_call"].append(w["total"] - w["import"])
     med = statistics.median
-    print(f"{'EQX_ON_ERROR':<14}{'min_compile_time':<18}{'cold':>8}{'warm':>8}{'first call cold':>17}"
-          f"{'first call warm':>17}{'entries':>9}   (s, medians of {args.repeats})")
+    print(
+        f"{'EQX_ON_ERROR':<14}{'min_compile_time':<18}{'cold':>8}{'warm':>8}{'first call cold':>17}"
+        f"{'first call warm':>17}{'entries':>9}   (s, medians of {args.repeats})"
+    )
     for (eqx_mode, min_t), r in res.items():
-        print(f"{eqx_mode:<14}{min_t:<18}{med(r['cold']):8.2f}{med(r['warm']):8.2f}{med(r['cold_call']):17.2f}"
-              f"{med(r['warm_call']):17.2f}{med(r['entries']):9.0f}", flush=True)
+        print(
+            f"{eqx_mode:<14}{min_t:<18}{med(r['cold']):8.2f}{med(r['warm']):8.2f}{med(r['cold_call']):17.2f}"
+            f"{med(r['warm_call']):17.2f}{med(r['entries']):9.0f}",
+            flush=True,
+        )
     if not args.no_off:
         env = dict(os.environ, JAXNH_CACHE_DIR="off")
         off = [run_user(env)["total"] for _ in range(args.repeats)]
@@ -120,7 +131,10 @@ def main():
             env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
             c = run_fit(env)
             w = [run_fit(env) for _ in range(max(1, args.repeats - 1))]
-            print(f"jaxnh fit: cold {c:.2f} s, warm {statistics.median(w):.2f} s (entries {entries(os.path.join(d, 'c'))})")
+            print(
+                f"jaxnh fit: cold {c:.2f} s, warm {statistics.median(w):.2f} s "
+                f"(entries {entries(os.path.join(d, 'c'))})"
+            )
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import contextlib
 import os
 import tempfile
 
+
 __all__ = ["atomic_write", "check_writable_file", "check_writable_dir"]
 
 

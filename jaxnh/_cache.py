@@ -36,6 +36,7 @@ import os
 import stat
 import warnings
 
+
 __all__ = ["setup_compilation_cache", "cache_dir", "check_cache_dir", "MIN_COMPILE_TIME_SECS", "OFF_VALUES"]
 
 OFF_VALUES = ("", "0", "off", "none", "false", "no")
@@ -98,7 +99,8 @@ def check_cache_dir(path: str) -> str | None:
     if uid is not None and st.st_uid != uid:
         return f"is owned by another user (uid {st.st_uid}; you are uid {uid})"
     if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        return f"is writable by {'others' if st.st_mode & stat.S_IWOTH else 'its group'} (mode {stat.S_IMODE(st.st_mode):04o})"
+        who = "others" if st.st_mode & stat.S_IWOTH else "its group"
+        return f"is writable by {who} (mode {stat.S_IMODE(st.st_mode):04o})"
     return _check_parent(path)
 
 
@@ -111,8 +113,10 @@ def _check_parent(path: str) -> str | None:
     except OSError:
         return None
     if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not st.st_mode & stat.S_ISVTX:
-        return (f"is in {parent}, which others can write (mode {stat.S_IMODE(st.st_mode):04o}, no sticky bit), "
-                "so it could be replaced by theirs")
+        return (
+            f"is in {parent}, which others can write (mode {stat.S_IMODE(st.st_mode):04o}, no sticky bit), "
+            "so it could be replaced by theirs"
+        )
     return None
 
 
@@ -181,11 +185,15 @@ def setup_compilation_cache(environ=None) -> str | None:
             f"jaxnh: not using the compilation cache folder {path}: it {why}. Compiled programs are native "
             "code, so a folder others can write would let them run code as you. Fix: remove or chmod 700 it "
             "(it must be your own directory), or set JAXNH_CACHE_DIR to another folder, or JAXNH_CACHE_DIR=off.",
-            UnsafeCacheDirWarning, stacklevel=2)
+            UnsafeCacheDirWarning,
+            stacklevel=2,
+        )
         return None
     jax.config.update("jax_compilation_cache_dir", path)
-    if ("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
-            and jax.config.jax_persistent_cache_min_compile_time_secs == JAX_DEFAULT_MIN_COMPILE_TIME):
+    if (
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
+        and jax.config.jax_persistent_cache_min_compile_time_secs == JAX_DEFAULT_MIN_COMPILE_TIME
+    ):
         jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)
     _reset_if_checked_without_cache()
     _active = path

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+
 __all__ = ["solution_to_dataframe", "fit_result_to_dict", "json_safe", "fit_status", "FIT_STATUSES"]
 
 FIT_STATUSES = ("fitted", "not_converged", "not_identifiable", "simulation_failed", "non_finite")
@@ -38,7 +39,7 @@ def json_safe(x: Any) -> Any:
         if a.dtype == object:
             return [json_safe(v) for v in a.tolist()]
         if a.dtype.kind in "fc":
-            a = a.real.astype(float)
+            a = np.real(a).astype(float)
             return json_safe(a.tolist()) if a.ndim else json_safe(float(a))
         return json_safe(a.tolist())
     raise TypeError(f"json_safe: cannot represent a {type(x).__name__} as JSON")
@@ -50,8 +51,12 @@ def fit_status(result) -> str:
     "not_converged" or "not_identifiable" (the first that applies)."""
     if "SIMULATION FAILED" in result.message:
         return "simulation_failed"
-    nums = [np.asarray(result.values, dtype=float), np.asarray([result.rms_residual, result.chi2_dof], dtype=float),
-            np.asarray(result.q0, dtype=float), np.asarray(result.qd0, dtype=float)]
+    nums = [
+        np.asarray(result.values, dtype=float),
+        np.asarray([result.rms_residual, result.chi2_dof], dtype=float),
+        np.asarray(result.q0, dtype=float),
+        np.asarray(result.qd0, dtype=float),
+    ]
     if not all(np.all(np.isfinite(a)) for a in nums):
         return "non_finite"
     if not result.converged:
@@ -92,13 +97,23 @@ def fit_result_to_dict(result, arrays: bool = False) -> dict:
         "rms_by_channel": result.rms_by_channel,
         "noise": result.noise,
         "chi2_dof": result.chi2_dof,
-        "lack_of_fit": {"significant": bool(lof.significant), "s2": lof.s2, "s2_threshold": lof.threshold,
-                        "model_error_over_noise": lof.model_error_over_noise,
-                        "model_error_rms": lof.model_error_rms, "residual_autocorrelation": lof.autocorrelation,
-                        "message": lof.message},
-        "identifiability": {"identifiable": bool(ident.identifiable), "condition": ident.condition,
-                            "singular_values": ident.singular_values, "undetermined": ident.undetermined,
-                            "poorly_determined": list(ident.poorly_determined), "messages": list(ident.messages)},
+        "lack_of_fit": {
+            "significant": bool(lof.significant),
+            "s2": lof.s2,
+            "s2_threshold": lof.threshold,
+            "model_error_over_noise": lof.model_error_over_noise,
+            "model_error_rms": lof.model_error_rms,
+            "residual_autocorrelation": lof.autocorrelation,
+            "message": lof.message,
+        },
+        "identifiability": {
+            "identifiable": bool(ident.identifiable),
+            "condition": ident.condition,
+            "singular_values": ident.singular_values,
+            "undetermined": ident.undetermined,
+            "poorly_determined": list(ident.poorly_determined),
+            "messages": list(ident.messages),
+        },
         "gn_step": result.gn_step,
         "optimizer": result.optimizer,
         "differentiation": result.differentiation,
@@ -138,15 +153,19 @@ def solution_to_dataframe(sol):
     try:
         import pandas as pd
     except ImportError:
-        raise ImportError("Solution.to_dataframe needs pandas (pip install pandas); the arrays are "
-                          "sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual") from None
+        raise ImportError(
+            "Solution.to_dataframe needs pandas (pip install pandas); the arrays are "
+            "sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual"
+        ) from None
     try:
         q = np.asarray(sol.q)
         qd = np.asarray(sol.qd)
         ts = np.asarray(sol.ts)
     except Exception as e:  # a tracer: inside jit/vmap
-        raise ValueError("to_dataframe: the Solution holds traced values (inside jax.jit/vmap); call it on the "
-                         f"returned Solution outside the transformation ({type(e).__name__})") from None
+        raise ValueError(
+            "to_dataframe: the Solution holds traced values (inside jax.jit/vmap); call it on the "
+            f"returned Solution outside the transformation ({type(e).__name__})"
+        ) from None
     if q.ndim < 2:
         raise ValueError(f"to_dataframe: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
     batch_shape = q.shape[:-2]

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+
 EPILOG = """\
 exit status: 0 success (fit: fitted); 1 the fit failed (results written with a failure
 status); 2 bad input (a message says what is wrong; nothing written).
@@ -45,11 +46,19 @@ def _use_agg() -> None:
 
 def main(argv=None) -> int:
     """Run `jaxnh` with `argv` (default: sys.argv[1:]); returns the exit status (0, 1 or 2)."""
-    parser = argparse.ArgumentParser(prog="jaxnh", description="Mechanisms with nonholonomic constraints in JAX",
-                                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="jaxnh",
+        description="Mechanisms with nonholonomic constraints in JAX",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="the variator derived three ways, simulated, checked (and fitted)",
-                          epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    demo = sub.add_parser(
+        "demo",
+        help="the variator derived three ways, simulated, checked (and fitted)",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     demo.add_argument("--out", default="jaxnh_out", help="folder for the figures and fit.json (default: jaxnh_out)")
     demo.add_argument("--no-fit", action="store_true", help="skip the parameter fit")
     from .identify.cli import add_fit_parser, run_fit
@@ -81,8 +90,10 @@ def _demo(args) -> int:
         figures = True
     except ImportError:
         figures = False
-        print("jaxnh demo: matplotlib is not installed: no figures (pip install matplotlib, or jaxnh[plot])",
-              file=sys.stderr)
+        print(
+            "jaxnh demo: matplotlib is not installed: no figures (pip install matplotlib, or jaxnh[plot])",
+            file=sys.stderr,
+        )
     from .demo import run
 
     try:

@@ -10,10 +10,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._simulate import simulate
 from .equations import accelerations
 from .models import variator as V
-from .profiles import Constant, Fourier
-from ._simulate import simulate
+from .profiles import Constant
+
 
 __all__ = ["run", "equation_coefficients", "plot_methods", "METHODS"]
 
@@ -51,7 +52,10 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
     U, dU = float(p.U21(t)), float(p.U21.derivative(t))
     J1, J2 = float(p.J1), float(p.J2)
     print("jaxnh demo — the stepless friction variator (s = 2, m = 1, W = 1)")
-    print(f"  J1 = {J1} kg·m², J2 = {J2} kg·m², U21(t) = 1 + 0.4 sin(πt), M1 = {float(p.M1(0))} N·m, M2 = {float(p.M2(0))} N·m")
+    print(
+        f"  J1 = {J1} kg·m², J2 = {J2} kg·m², U21(t) = 1 + 0.4 sin(πt), "
+        f"M1 = {float(p.M1(0))} N·m, M2 = {float(p.M2(0))} N·m"
+    )
     print(f"\n1. Equations of motion  I·phi1'' + C·phi1' = F  at t = {t} s, phi1' = {w} rad/s")
     print(f"   (U21 = {U:.6f}, U21' = {dU:.6f})")
     print(f"   {'derived by':<26}{'I [kg·m²]':>14}{'C [kg·m²/s]':>16}{'F [N·m]':>14}")
@@ -78,14 +82,18 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
     sols = {}
     for m in METHODS:
         t0 = time.perf_counter()
-        sol = simulate(V.mechanism(), p, jnp.zeros(2), qd0, ts, method=m, rtol=1e-12, atol=1e-12,
-                       solver=diffrax.Dopri8())
+        sol = simulate(
+            V.mechanism(), p, jnp.zeros(2), qd0, ts, method=m, rtol=1e-12, atol=1e-12, solver=diffrax.Dopri8()
+        )
         jax.block_until_ready(sol.q)
         el = time.perf_counter() - t0
         err = float(max(jnp.max(jnp.abs(sol.q - q_ref)), jnp.max(jnp.abs(sol.qd - qd_ref))))
         sols[m] = sol
         report[f"error_{m}"] = err
-        print(f"   {m:<12} max error {err:9.2e}   steps {int(sol.stats['num_steps']):5d}   {sol.message}  ({el:.2f} s incl. compile)")
+        print(
+            f"   {m:<12} max error {err:9.2e}   steps {int(sol.stats['num_steps']):5d}   {sol.message}  "
+            f"({el:.2f} s incl. compile)"
+        )
 
     # 3. energy with M1 = M2 = 0
     pf = V.VariatorParams(p.J1, p.J2, p.U21)
@@ -93,8 +101,18 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
     print("\n3. Energy with M1 = M2 = 0 over 100 periods of U21 (the constraint force does no work)")
     energies = {}
     for m in METHODS:
-        sol = simulate(V.mechanism(), pf, jnp.zeros(2), qd0, tf, method=m, rtol=1e-12, atol=1e-12,
-                       record=("energy",), solver=diffrax.Dopri8())
+        sol = simulate(
+            V.mechanism(),
+            pf,
+            jnp.zeros(2),
+            qd0,
+            tf,
+            method=m,
+            rtol=1e-12,
+            atol=1e-12,
+            record=("energy",),
+            solver=diffrax.Dopri8(),
+        )
         E = np.asarray(sol.energy)
         energies[m] = E
         drift = float(np.max(np.abs(E - E[0])) / E[0])

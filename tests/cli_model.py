@@ -15,6 +15,7 @@ import jaxnh as nh
 from jaxnh.identify.spec import FitSpec
 from jaxnh.profiles import Sampled
 
+
 K = 1.5  # transmission ratio, 1
 J2 = 0.03  # kg·m², known
 TRUE = {"J1": 0.02, "c": 0.004}  # kg·m², N·m·s
@@ -43,14 +44,27 @@ def params(record, J1=START["J1"], c=START["c"]):
 
 def coupled_shafts():
     """The FitSpec: J1 and c free and positive, both angles observed, input column F."""
-    return FitSpec(mechanism=MECH, params=params, free=("J1", "c"), positive=("J1", "c"), observed=("a", "b"),
-                   inputs=("F",), options={"rtol": 1e-8})
+    return FitSpec(
+        mechanism=MECH,
+        params=params,
+        free=("J1", "c"),
+        positive=("J1", "c"),
+        observed=("a", "b"),
+        inputs=("F",),
+        options={"rtol": 1e-8},
+    )
 
 
 def coupled_shafts_dict():
     """The same contract as a plain dict."""
-    return {"mechanism": MECH, "params": params, "free": ["J1", "c"], "positive": ["J1", "c"],
-            "observed": ["a", "b"], "inputs": ["F"]}
+    return {
+        "mechanism": MECH,
+        "params": params,
+        "free": ["J1", "c"],
+        "positive": ["J1", "c"],
+        "observed": ["a", "b"],
+        "inputs": ["F"],
+    }
 
 
 def not_a_spec():

@@ -14,14 +14,23 @@ import jax
 import pytest
 
 from jaxnh import _cache
-from jaxnh._cache import MIN_COMPILE_TIME_SECS, UnsafeCacheDirWarning, cache_dir, check_cache_dir, setup_compilation_cache
+from jaxnh._cache import (
+    cache_dir,
+    check_cache_dir,
+    MIN_COMPILE_TIME_SECS,
+    setup_compilation_cache,
+    UnsafeCacheDirWarning,
+)
 
 
 @pytest.fixture
 def clean_jax_cache_config():
     """Run a test that may call setup_compilation_cache and put JAX's flags back afterwards."""
-    before = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs,
-              _cache._active)
+    before = (
+        jax.config.jax_compilation_cache_dir,
+        jax.config.jax_persistent_cache_min_compile_time_secs,
+        _cache._active,
+    )
     yield
     jax.config.update("jax_compilation_cache_dir", before[0])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
@@ -84,8 +93,9 @@ def refused(tmp_path, path, match):
     assert jax.config.jax_compilation_cache_dir is None
 
 
-@pytest.mark.parametrize("perm,match", [(0o777, "writable by others"), (0o770, "writable by its group"),
-                                        (0o702, "writable by others")])
+@pytest.mark.parametrize(
+    "perm,match", [(0o777, "writable by others"), (0o770, "writable by its group"), (0o702, "writable by others")]
+)
 def test_writable_by_others_is_refused(tmp_path, clean_jax_cache_config, perm, match):
     d = tmp_path / "c"
     d.mkdir()
@@ -147,11 +157,13 @@ def test_existing_private_folder_is_used(tmp_path, clean_jax_cache_config):
 
 def test_programs_are_written_and_an_unsafe_folder_is_not_read(tmp_path):
     # fresh processes, so the global JAX setting does not leak into the test session
-    code = ("import warnings, jax, jax.numpy as jnp\n"
-            "from jaxnh._cache import setup_compilation_cache\n"
-            "p = setup_compilation_cache()\n"
-            "jax.jit(lambda x: jnp.sin(x) * 2)(1.0).block_until_ready()\n"
-            "print(p, jax.config.jax_compilation_cache_dir)\n")
+    code = (
+        "import warnings, jax, jax.numpy as jnp\n"
+        "from jaxnh._cache import setup_compilation_cache\n"
+        "p = setup_compilation_cache()\n"
+        "jax.jit(lambda x: jnp.sin(x) * 2)(1.0).block_until_ready()\n"
+        "print(p, jax.config.jax_compilation_cache_dir)\n"
+    )
     env = dict(os.environ, JAXNH_CACHE_DIR=str(tmp_path / "c"), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr

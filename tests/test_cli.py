@@ -18,10 +18,12 @@ import pytest
 
 from jaxnh.cli import main
 
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 MODEL = os.path.join(HERE, "cli_model.py") + ":coupled_shafts"
 sys.path.insert(0, HERE)
 import cli_model  # noqa: E402
+
 
 HEADER = "t,phi1,phi2,M1,M2"
 
@@ -61,8 +63,9 @@ def no_fit(monkeypatch):
 # --- checks before fitting (no compilation) -------------------------------------------------------
 
 
-@pytest.mark.parametrize("kind", ["missing folder", "is a folder", "out is a file", "out parent missing",
-                                  "json is the data"])
+@pytest.mark.parametrize(
+    "kind", ["missing folder", "is a folder", "out is a file", "out parent missing", "json is the data"]
+)
 def test_output_paths_are_checked_before_fitting(tmp_path, capsys, no_fit, kind):
     data = tmp_path / "d.csv"
     data.write_text(HEADER + "\n" + rows())
@@ -102,8 +105,10 @@ BAD_CSV = [
     (HEADER + "\n" + rows().replace("0.1,-0.1", "1_000,-0.1", 1), r"line 2, column 'M1': '1_000' is not a number"),
     (HEADER + "\n" + rows().replace("0.1,-0.1", "1e999,-0.1", 1), r"line 2, column 'M1': '1e999' is beyond"),
     ("# c\n" + HEADER + "\n" + rows().replace("0.1,-0.1", "nan,-0.1", 1), r"non-finite .* first at line 3 \(t = 0.0\)"),
-    (HEADER + "\n" + rows(10) + "\n0.05,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(11, 25)),
-     r"decreasing time at line 11 and line 12 \(t = 0.09, 0.05\)"),
+    (
+        HEADER + "\n" + rows(10) + "\n0.05,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(11, 25)),
+        r"decreasing time at line 11 and line 12 \(t = 0.09, 0.05\)",
+    ),
     ("t,phi1,M1,M2\n" + rows(), r"missing column\(s\) \['phi2'\]"),
     (b"\x00\xff\xfe garbage \x81", r"not UTF-8 text"),
     ("", r"no header row"),
@@ -115,28 +120,32 @@ BAD_CSV = [
 def test_bad_records_exit_2_and_write_nothing(tmp_path, capsys, no_fit, text, pattern):
     data = tmp_path / "d.csv"
     data.write_bytes(text if isinstance(text, bytes) else text.encode())
-    code, out, err = run(["fit", str(data), "--quiet", "--json", str(tmp_path / "o.json"),
-                          "--out", str(tmp_path / "figs")], capsys)
+    code, out, err = run(
+        ["fit", str(data), "--quiet", "--json", str(tmp_path / "o.json"), "--out", str(tmp_path / "figs")], capsys
+    )
     assert_bad_input(code, err, pattern)
     assert str(data) in err
     assert listing(tmp_path) == ["d.csv"]
 
 
-@pytest.mark.parametrize("args,pattern", [
-    (["--knots", "1000"], r"--knots: 1000 is out of range: expected 2 ≤ value ≤ 200"),
-    (["--knots", "1_0"], r"--knots: '1_0' is not an integer"),
-    (["--knots", "30"], r"--knots 30: more knots than the 25 samples"),
-    (["--knots", "22", "--observe", "phi1"], r"--knots 22: 26 unknowns but only 25 samples × 1 channel"),
-    (["--noise", "0"], r"--noise: '0': expected a finite number > 0"),
-    (["--noise", "nan"], r"--noise: 'nan': expected a finite number > 0"),
-    (["--noise", "1", "2", "3"], r"--noise: give 1 or 2 values"),
-    (["--observe", "phi3"], r"--observe: expected phi1 and/or phi2"),
-    (["--shooting", "5"], r"--shooting 5: segments of 6 samples are too short"),
-    (["--max-iterations", "0"], r"--max-iterations: 0 is out of range"),
-    (["--max-samples", "20"], r"more than 20 samples \(reached at line 22"),
-    (["--every", "2"], r"too few samples: 13"),
-    (["--knots", "3", "--model", MODEL], r"--knots applies to --model variator only"),
-])
+@pytest.mark.parametrize(
+    "args,pattern",
+    [
+        (["--knots", "1000"], r"--knots: 1000 is out of range: expected 2 ≤ value ≤ 200"),
+        (["--knots", "1_0"], r"--knots: '1_0' is not an integer"),
+        (["--knots", "30"], r"--knots 30: more knots than the 25 samples"),
+        (["--knots", "22", "--observe", "phi1"], r"--knots 22: 26 unknowns but only 25 samples × 1 channel"),
+        (["--noise", "0"], r"--noise: '0': expected a finite number > 0"),
+        (["--noise", "nan"], r"--noise: 'nan': expected a finite number > 0"),
+        (["--noise", "1", "2", "3"], r"--noise: give 1 or 2 values"),
+        (["--observe", "phi3"], r"--observe: expected phi1 and/or phi2"),
+        (["--shooting", "5"], r"--shooting 5: segments of 6 samples are too short"),
+        (["--max-iterations", "0"], r"--max-iterations: 0 is out of range"),
+        (["--max-samples", "20"], r"more than 20 samples \(reached at line 22"),
+        (["--every", "2"], r"too few samples: 13"),
+        (["--knots", "3", "--model", MODEL], r"--knots applies to --model variator only"),
+    ],
+)
 def test_parameter_counts_and_options_are_checked(tmp_path, capsys, no_fit, args, pattern):
     data = tmp_path / "d.csv"
     data.write_text(HEADER + "\n" + rows())
@@ -144,15 +153,21 @@ def test_parameter_counts_and_options_are_checked(tmp_path, capsys, no_fit, args
     assert_bad_input(code, err, pattern)
 
 
-@pytest.mark.parametrize("ref,pattern", [
-    ("no_such_module_xyz:f", r"no module named 'no_such_module_xyz'"),
-    ("variator2", r"expected 'variator' or 'module:function'"),
-    (MODEL.replace("coupled_shafts", "missing"), r"has no attribute 'missing'"),
-    (MODEL.replace("coupled_shafts", "not_a_spec"), r"must return a jaxnh.identify.spec.FitSpec .* got int"),
-    (MODEL.replace("coupled_shafts", "raises"), r"calling raises\(\) raised RuntimeError: the user's model is "
-                                                r"broken \(at .*cli_model.py:\d+\)"),
-    ("/nonexistent/m.py:f", r"no file /nonexistent/m.py"),
-])
+@pytest.mark.parametrize(
+    "ref,pattern",
+    [
+        ("no_such_module_xyz:f", r"no module named 'no_such_module_xyz'"),
+        ("variator2", r"expected 'variator' or 'module:function'"),
+        (MODEL.replace("coupled_shafts", "missing"), r"has no attribute 'missing'"),
+        (MODEL.replace("coupled_shafts", "not_a_spec"), r"must return a jaxnh.identify.spec.FitSpec .* got int"),
+        (
+            MODEL.replace("coupled_shafts", "raises"),
+            r"calling raises\(\) raised RuntimeError: the user's model is "
+            r"broken \(at .*cli_model.py:\d+\)",
+        ),
+        ("/nonexistent/m.py:f", r"no file /nonexistent/m.py"),
+    ],
+)
 def test_bad_model_references(tmp_path, capsys, no_fit, ref, pattern):
     data = tmp_path / "d.csv"
     data.write_text(cli_model.record_text())
@@ -181,8 +196,14 @@ def test_missing_file_and_help(tmp_path, capsys):
     code, out, err = run(["fit", "--help"], capsys)
     assert code == 0
     text = " ".join(out.split())
-    for s in ("exit status: 0 fitted", "1 the fit failed", "2 bad input", "module:function", "FitSpec",
-              "1-based line numbers"):
+    for s in (
+        "exit status: 0 fitted",
+        "1 the fit failed",
+        "2 bad input",
+        "module:function",
+        "FitSpec",
+        "1-based line numbers",
+    ):
         assert s in text, s
     code, out, err = run(["fit", "--bogus"], capsys)
     assert code == 2 and "unrecognized arguments" in err
@@ -214,8 +235,9 @@ def fitted(tmp_path_factory):
     d = tmp_path_factory.mktemp("fit")
     data = d / "d.csv"
     data.write_bytes(b"\xef\xbb\xbf" + cli_model.record_text().encode())  # with a UTF-8 byte-order mark
-    code = main(["fit", str(data), "--model", MODEL, "--json", str(d / "fit.json"), "--out", str(d / "figs"),
-                 "--quiet"])
+    code = main(
+        ["fit", str(data), "--model", MODEL, "--json", str(d / "fit.json"), "--out", str(d / "figs"), "--quiet"]
+    )
     return d, code
 
 
@@ -246,11 +268,19 @@ def test_dict_spec_and_to_dict(fitted, tmp_path):
     from jaxnh.identify import Record
 
     d, _ = fitted
-    rec = Record.from_dataframe(pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"],
-                                inputs=["F"])
+    rec = Record.from_dataframe(
+        pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"], inputs=["F"]
+    )
     np.testing.assert_array_equal(rec.t, read_csv(d / "d.csv", coordinates=("a", "b"), inputs=("F",)).t)
-    kw = dict(free=("J1", "c"), positive=("J1", "c"), observe=("a", "b"), rtol=1e-8, shooting=1, max_iterations=100,
-              progress=False)
+    kw: dict = dict(
+        free=("J1", "c"),
+        positive=("J1", "c"),
+        observe=("a", "b"),
+        rtol=1e-8,
+        shooting=1,
+        max_iterations=100,
+        progress=False,
+    )
     r = nh.fit(cli_model.MECH, cli_model.params(rec), rec, **kw)
     dd = r.to_dict(arrays=True)
     text = json.dumps(dd, allow_nan=False)
@@ -269,8 +299,9 @@ def test_dict_spec_and_to_dict(fitted, tmp_path):
     assert dd["status"] == "non_finite" and dd["ok"] is False
     assert dd["values"][0] is None and dd["std"][0] is None
     # the record's own noise levels are used when fit gets no noise=
-    rec_s = Record.from_dataframe(pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"],
-                                  inputs=["F"], sigma=2e-4)
+    rec_s = Record.from_dataframe(
+        pd.read_csv(d / "d.csv", encoding="utf-8-sig"), time="t", observed=["a", "b"], inputs=["F"], sigma=2e-4
+    )
     r2 = nh.fit(cli_model.MECH, cli_model.params(rec_s), rec_s, **kw)
     assert r2.noise == {"a": 2e-4, "b": 2e-4} and r2.converged
     # plots draw into a given Figure and return it
@@ -285,8 +316,7 @@ def test_dict_spec_and_to_dict(fitted, tmp_path):
 def test_overflowing_record_is_bad_input(tmp_path, capsys, no_fit):
     data = tmp_path / "d.csv"
     data.write_text(cli_model.record_text(scale=1e300))
-    code, out, err = run(["fit", str(data), "--model", MODEL, "--json", str(tmp_path / "o.json"), "--quiet"],
-                         capsys)
+    code, out, err = run(["fit", str(data), "--model", MODEL, "--json", str(tmp_path / "o.json"), "--quiet"], capsys)
     assert_bad_input(code, err, r"column 'a' has values up to \d\.\d+e\+300 in magnitude; .* other units")
     assert listing(tmp_path) == ["d.csv"]
 
@@ -296,8 +326,18 @@ def test_no_torque_is_not_identifiable_exit_1(tmp_path, capsys, fitted):
     # F = 0: (J1 + K² J2) a'' = −K² c a' determines only c / (J1 + K² J2)
     data = tmp_path / "d.csv"
     data.write_text(cli_model.record_text().replace(",0.05\n", ",0.0\n"))
-    code, out, err = run(["fit", str(data), "--model", MODEL.replace("coupled_shafts", "coupled_shafts_dict"),
-                          "--json", str(tmp_path / "o.json"), "--quiet"], capsys)
+    code, out, err = run(
+        [
+            "fit",
+            str(data),
+            "--model",
+            MODEL.replace("coupled_shafts", "coupled_shafts_dict"),
+            "--json",
+            str(tmp_path / "o.json"),
+            "--quiet",
+        ],
+        capsys,
+    )
     rep = json.loads((tmp_path / "o.json").read_text())
     assert code == 1, (out, err)
     assert rep["status"] in ("not_identifiable", "not_converged") and not rep["ok"]

@@ -17,6 +17,7 @@ from jaxnh._dataframe import json_safe, solution_to_dataframe
 from jaxnh.identify import Record
 from jaxnh.identify.data import MAX_LINE_BYTES, read_csv, write_csv
 
+
 HEADER = "t,phi1,phi2,M1,M2"
 
 
@@ -43,8 +44,12 @@ def test_byte_order_mark_is_accepted(tmp_path):
 
 
 def test_spaces_quotes_crlf_comments_and_extra_columns(tmp_path):
-    text = ("# a comment\r\n\r\n" + "t, phi1 ,phi2,M1,M2,extra\r\n"
-            + "\r\n".join(f'{0.01 * i!r}, "{0.1 * i!r}",{0.2 * i!r},0.1,-0.1,x' for i in range(25)) + "\r\n")
+    text = (
+        "# a comment\r\n\r\n"
+        + "t, phi1 ,phi2,M1,M2,extra\r\n"
+        + "\r\n".join(f'{0.01 * i!r}, "{0.1 * i!r}",{0.2 * i!r},0.1,-0.1,x' for i in range(25))
+        + "\r\n"
+    )
     rec = read_csv(write(tmp_path, text))
     np.testing.assert_allclose(rec.channels["phi1"], 0.1 * np.arange(25))
 
@@ -55,13 +60,24 @@ BAD = [
     (HEADER + "\n" + rows().replace("0.1,-0.1", "1e999,-0.1", 1), r"line 2, column 'M1': '1e999' is beyond the range"),
     (HEADER + "\n" + rows().replace("0.1,-0.1", "٣,-0.1", 1), r"line 2, column 'M1': '٣' is not a number"),
     (HEADER + "\n" + rows().replace("0.1,-0.1", "0x10,-0.1", 1), r"line 2, column 'M1': '0x10' is not a number"),
-    ("# comment\n\n" + HEADER + "\n" + rows().replace("0.1,-0.1", "nan,-0.1", 1),
-     r"column 'M1' has non-finite values .* first at line 4 \(t = 0.0\)"),
+    (
+        "# comment\n\n" + HEADER + "\n" + rows().replace("0.1,-0.1", "nan,-0.1", 1),
+        r"column 'M1' has non-finite values .* first at line 4 \(t = 0.0\)",
+    ),
     (HEADER + "\n" + rows().replace("0.1,-0.1", "-inf,-0.1", 1), r"non-finite values"),
-    ("# c\n" + HEADER + "\n" + rows(10) + "\n0.09,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(10, 20)),
-     r"repeated time at line 12 and line 13 \(t = 0.09, 0.09\)"),
-    (HEADER + "\n" + rows(10) + "\n0.05,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(11, 25)),
-     r"decreasing time at line 11 and line 12 \(t = 0.09, 0.05\)"),
+    (
+        "# c\n"
+        + HEADER
+        + "\n"
+        + rows(10)
+        + "\n0.09,0,0,0,0\n"
+        + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(10, 20)),
+        r"repeated time at line 12 and line 13 \(t = 0.09, 0.09\)",
+    ),
+    (
+        HEADER + "\n" + rows(10) + "\n0.05,0,0,0,0\n" + "\n".join(f"{0.01 * i},0,0,0,0" for i in range(11, 25)),
+        r"decreasing time at line 11 and line 12 \(t = 0.09, 0.05\)",
+    ),
     (HEADER + "\n" + rows(3) + "\n1,2,3\n", r"line 5 has 3 fields; the header \(line 1\) has 5"),
     (HEADER + ",t\n" + rows(), r"column\(s\) \['t'\] appear more than once"),
     ("t;phi1;phi2;M1;M2\n" + rows().replace(",", ";"), r"missing column.*separator must be a comma"),
@@ -73,10 +89,14 @@ BAD = [
     (HEADER + "\n" + rows(5), r"too few samples: 5; expected at least 20"),
     (b"\xff\xfe" + HEADER.encode("utf-16-le"), r"line 1 is not UTF-8 text"),
     ((HEADER + "\n" + rows(3) + "\n").encode() + b"0.5,\x80,0,0,0\n", r"line 5 is not UTF-8 text"),
-    (HEADER + "\n1e307,0,0,0,0\n-1e307,0,0,0,0\n" + "\n".join(f"{i},0,0,0,0" for i in range(20)),
-     r"decreasing time at line 2 and line 3 \(t = 1e\+307, -1e\+307\)"),
-    (HEADER + "\n-1.7e308,0,0,0,0\n1.7e308,0,0,0,0\n" + "\n".join(f"1.71e308,{i},0,0,0" for i in range(20)),
-     r"time step between line 2 and line 3 overflows"),
+    (
+        HEADER + "\n1e307,0,0,0,0\n-1e307,0,0,0,0\n" + "\n".join(f"{i},0,0,0,0" for i in range(20)),
+        r"decreasing time at line 2 and line 3 \(t = 1e\+307, -1e\+307\)",
+    ),
+    (
+        HEADER + "\n-1.7e308,0,0,0,0\n1.7e308,0,0,0,0\n" + "\n".join(f"1.71e308,{i},0,0,0" for i in range(20)),
+        r"time step between line 2 and line 3 overflows",
+    ),
     (HEADER + "\n0,0,0,0,\x00\n", r"line 2 contains a NUL byte"),
 ]
 
@@ -198,9 +218,18 @@ def fake_solution(batch=()):
     n, s = 5, 2
     ts = np.linspace(0, 1, n)
     q = np.broadcast_to(np.stack([ts, 2 * ts], axis=1), batch + (n, s)).copy()
-    return types.SimpleNamespace(ts=np.broadcast_to(ts, batch + (n,)), q=q, qd=q + 1, energy=np.ones(batch + (n,)),
-                                 multipliers=np.zeros(batch + (n, 1)), residual=None, names=("phi1", "phi2"),
-                                 success=np.ones(batch, bool), status=np.zeros(batch, int), message="success")
+    return types.SimpleNamespace(
+        ts=np.broadcast_to(ts, batch + (n,)),
+        q=q,
+        qd=q + 1,
+        energy=np.ones(batch + (n,)),
+        multipliers=np.zeros(batch + (n, 1)),
+        residual=None,
+        names=("phi1", "phi2"),
+        success=np.ones(batch, bool),
+        status=np.zeros(batch, int),
+        message="success",
+    )
 
 
 def test_solution_to_dataframe_single_and_batched():
@@ -228,8 +257,9 @@ def test_solution_to_dataframe_from_a_real_solve():
 
     p = V.default_params()
     ts = jnp.linspace(0.0, 1.0, 11)
-    sol = nh.simulate(V.mechanism(), p, jnp.zeros(2), jnp.array([2.0, 2.0 * float(p.U21(0.0))]), ts,
-                      record=("energy", "residual"))
+    sol = nh.simulate(
+        V.mechanism(), p, jnp.zeros(2), jnp.array([2.0, 2.0 * float(p.U21(0.0))]), ts, record=("energy", "residual")
+    )
     df = solution_to_dataframe(sol)
     assert df.attrs["success"] and len(df) == 11
     assert {"phi1", "phi2", "phi1_dot", "phi2_dot", "energy", "residual_0"} <= set(df.columns)
@@ -240,12 +270,26 @@ def test_solution_to_dataframe_from_a_real_solve():
 
 
 def test_json_safe_never_gives_invalid_json():
-    data = {"a": np.float64(np.inf), "b": [np.nan, 1.5, -np.inf], "c": np.arange(3), "d": np.array([[1.0, np.nan]]),
-            "e": np.bool_(True), "f": (np.int32(3), None, "x"), 4: np.float32(2.5)}
+    data = {
+        "a": np.float64(np.inf),
+        "b": [np.nan, 1.5, -np.inf],
+        "c": np.arange(3),
+        "d": np.array([[1.0, np.nan]]),
+        "e": np.bool_(True),
+        "f": (np.int32(3), None, "x"),
+        4: np.float32(2.5),
+    }
     out = json_safe(data)
     text = json.dumps(out, allow_nan=False)
-    assert json.loads(text) == {"a": None, "b": [None, 1.5, None], "c": [0, 1, 2], "d": [[1.0, None]], "e": True,
-                                "f": [3, None, "x"], "4": 2.5}
+    assert json.loads(text) == {
+        "a": None,
+        "b": [None, 1.5, None],
+        "c": [0, 1, 2],
+        "d": [[1.0, None]],
+        "e": True,
+        "f": [3, None, "x"],
+        "4": 2.5,
+    }
     with pytest.raises(TypeError):
         json_safe(object())
 
@@ -272,23 +316,35 @@ def test_library_imports_and_plots_without_touching_the_backend():
         "assert type(f2).__name__ == 'Figure'\n"
         "print(matplotlib.get_backend())\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, JAXNH_CACHE_DIR="off"))
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, JAXNH_CACHE_DIR="off"),
+    )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "svg"
 
 
 def test_library_imports_without_matplotlib():
-    code = ("import sys\n"
-            "sys.modules['matplotlib'] = None\n"  # as if not installed
-            "import jaxnh, jaxnh.identify.plots, jaxnh.demo, jaxnh.identify.cli\n"
-            "from jaxnh.identify.plots import plot_fit\n"
-            "try:\n"
-            "    plot_fit(None)\n"
-            "except ImportError as e:\n"
-            "    print('ImportError', e)\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                         env=dict(os.environ, JAXNH_CACHE_DIR="off"))
+    code = (
+        "import sys\n"
+        "sys.modules['matplotlib'] = None\n"  # as if not installed
+        "import jaxnh, jaxnh.identify.plots, jaxnh.demo, jaxnh.identify.cli\n"
+        "from jaxnh.identify.plots import plot_fit\n"
+        "try:\n"
+        "    plot_fit(None)\n"
+        "except ImportError as e:\n"
+        "    print('ImportError', e)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=dict(os.environ, JAXNH_CACHE_DIR="off"),
+    )
     assert out.returncode == 0, out.stderr
     assert "ImportError plots need matplotlib" in out.stdout
 

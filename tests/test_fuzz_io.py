@@ -23,18 +23,33 @@ import tempfile
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import given, HealthCheck, settings, strategies as st
 
 from jaxnh.identify import Record
 from jaxnh.identify.data import read_csv
 
-FUZZ = settings(derandomize=True, database=None, deadline=None, max_examples=20,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+FUZZ = settings(
+    derandomize=True,
+    database=None,
+    deadline=None,
+    max_examples=20,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 
 REQUIRED = ("t", "phi1", "phi2", "M1", "M2")
-FAULTS = ("none", "missing_column", "nan", "underscore", "overflow", "garbage", "repeated_time",
-          "decreasing_time", "short_row", "few_rows")
+FAULTS = (
+    "none",
+    "missing_column",
+    "nan",
+    "underscore",
+    "overflow",
+    "garbage",
+    "repeated_time",
+    "decreasing_time",
+    "short_row",
+    "few_rows",
+)
 GARBAGE = ("abc", "1.2.3", "--1", "0x10", "١٢", "1e", "e5", "nan?", "1 2", "∞", "Infinity5", "True")
 
 
@@ -54,8 +69,10 @@ def records(draw, fault=None):
         cols[c] = draw(st.lists(finite, min_size=n, max_size=n))
     extras = draw(st.lists(st.sampled_from(["x", "note", "T2", "phi3"]), unique=True, max_size=2))
     order = draw(st.permutations(list(REQUIRED) + extras))
-    cells = [[repr(float(cols[c][i])) if c in cols else draw(st.sampled_from(["", "n/a", "1", "q"]))
-              for c in order] for i in range(n)]
+    cells = [
+        [repr(float(cols[c][i])) if c in cols else draw(st.sampled_from(["", "n/a", "1", "q"])) for c in order]
+        for i in range(n)
+    ]
     header = list(order)
     bad_row = None  # index of the broken data row
     expect = None
@@ -69,15 +86,19 @@ def records(draw, fault=None):
     elif fault in ("nan", "underscore", "overflow", "garbage"):
         bad_row = draw(st.integers(0, n - 1))
         col = draw(st.sampled_from(REQUIRED))
-        text = {"nan": draw(st.sampled_from(["nan", "NaN", "inf", "-inf", "+Infinity"])),
-                "underscore": draw(st.sampled_from(["1_000", "0.1_5", "1e1_0", "_1"])),
-                "overflow": draw(st.sampled_from(["1e999", "-2e308", "1.8e308"])),
-                "garbage": draw(st.sampled_from(GARBAGE))}[fault]
+        text = {
+            "nan": draw(st.sampled_from(["nan", "NaN", "inf", "-inf", "+Infinity"])),
+            "underscore": draw(st.sampled_from(["1_000", "0.1_5", "1e1_0", "_1"])),
+            "overflow": draw(st.sampled_from(["1e999", "-2e308", "1.8e308"])),
+            "garbage": draw(st.sampled_from(GARBAGE)),
+        }[fault]
         cells[bad_row][header.index(col)] = text
-        expect = {"nan": rf"column '{col}' has non-finite values .* first at line {{line}}",
-                  "underscore": rf"line {{line}}, column '{col}': .* is not a number",
-                  "overflow": rf"line {{line}}, column '{col}': .* beyond the range",
-                  "garbage": rf"line {{line}}, column '{col}': .* is not a number"}[fault]
+        expect = {
+            "nan": rf"column '{col}' has non-finite values .* first at line {{line}}",
+            "underscore": rf"line {{line}}, column '{col}': .* is not a number",
+            "overflow": rf"line {{line}}, column '{col}': .* beyond the range",
+            "garbage": rf"line {{line}}, column '{col}': .* is not a number",
+        }[fault]
     elif fault in ("repeated_time", "decreasing_time"):
         bad_row = draw(st.integers(1, n - 1))
         j = header.index("t")
@@ -107,8 +128,11 @@ def records(draw, fault=None):
         line_of[i] = len(lines)
     text = ("\ufeff" if bom else "") + eol.join(lines) + eol
     if expect is not None:
-        expect = expect.replace("{line}", str(line_of.get(bad_row, -1))).replace(
-            "{prev}", str(line_of.get((bad_row or 0) - 1, -1))).replace("{header}", str(header_line))
+        expect = (
+            expect.replace("{line}", str(line_of.get(bad_row, -1)))
+            .replace("{prev}", str(line_of.get((bad_row or 0) - 1, -1)))
+            .replace("{header}", str(header_line))
+        )
     return fault, text, cols, expect
 
 

@@ -35,25 +35,40 @@ Exit status:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
 import sys
 import warnings
 from importlib import resources
+from typing import Any
 
 import numpy as np
 
-__all__ = ["add_fit_parser", "run_fit", "fit_main", "demo_fit", "estimate_table", "MODELS", "EXIT_CODES",
-           "MAX_KNOTS", "BadInput"]
+
+__all__ = [
+    "add_fit_parser",
+    "run_fit",
+    "fit_main",
+    "demo_fit",
+    "estimate_table",
+    "MODELS",
+    "EXIT_CODES",
+    "MAX_KNOTS",
+    "BadInput",
+]
 
 MODELS = ("variator",)
 Z95 = 1.959963984540054
 MAX_KNOTS = 200
 MAX_ABS = 1e100  # larger values in a record are refused (their squares overflow)
 EXIT_FITTED, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
-EXIT_CODES = {EXIT_FITTED: "fitted", EXIT_FAILED: "the fit failed (results written with a failure status)",
-              EXIT_BAD_INPUT: "bad input (nothing written)"}
+EXIT_CODES = {
+    EXIT_FITTED: "fitted",
+    EXIT_FAILED: "the fit failed (results written with a failure status)",
+    EXIT_BAD_INPUT: "bad input (nothing written)",
+}
 PROGRESS_BYTES = 8 << 20  # show reading progress for files larger than this
 
 EPILOG = """\
@@ -82,9 +97,11 @@ def _int_arg(lo, hi=None):
             raise argparse.ArgumentTypeError(f"{s!r} is not an integer")
         v = int(s2)
         if v < lo or (hi is not None and v > hi):
-            raise argparse.ArgumentTypeError(f"{v} is out of range: expected {lo} ≤ value"
-                                             + (f" ≤ {hi}" if hi is not None else ""))
+            raise argparse.ArgumentTypeError(
+                f"{v} is out of range: expected {lo} ≤ value" + (f" ≤ {hi}" if hi is not None else "")
+            )
         return v
+
     return parse
 
 
@@ -105,31 +122,69 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     """Add the `fit` sub-command to an argparse `subparsers`; its handler is
     `args.func(args) -> int` (= `run_fit`)."""
     p = subparsers.add_parser(
-        "fit", help="fit a mechanism's parameters to a measured record (default: the variator, embedded record)",
+        "fit",
+        help="fit a mechanism's parameters to a measured record (default: the variator, embedded record)",
         description="Least-squares fit of a mechanism's parameters and initial state to measured coordinates, "
-                    "with standard errors, a lack-of-fit test and an identifiability report. Default model: the "
-                    "variator's inertias J1, J2 and ratio law U21(t) from encoder angles phi1, phi2 with applied "
-                    "torques M1, M2 (CSV columns t, phi1, phi2, M1, M2; s, rad, N·m).",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("data", nargs="?", default=None,
-                   help="CSV file, UTF-8, comma-separated, header row (default: the embedded variator record)")
-    p.add_argument("--model", default="variator", metavar="MODEL",
-                   help="'variator' (default), or module:function / file.py:function returning a FitSpec")
-    p.add_argument("--json", default=None, metavar="OUT.json",
-                   help="write estimates, standard errors and status as JSON (the folder must exist)")
+        "with standard errors, a lack-of-fit test and an identifiability report. Default model: the "
+        "variator's inertias J1, J2 and ratio law U21(t) from encoder angles phi1, phi2 with applied "
+        "torques M1, M2 (CSV columns t, phi1, phi2, M1, M2; s, rad, N·m).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "data",
+        nargs="?",
+        default=None,
+        help="CSV file, UTF-8, comma-separated, header row (default: the embedded variator record)",
+    )
+    p.add_argument(
+        "--model",
+        default="variator",
+        metavar="MODEL",
+        help="'variator' (default), or module:function / file.py:function returning a FitSpec",
+    )
+    p.add_argument(
+        "--json",
+        default=None,
+        metavar="OUT.json",
+        help="write estimates, standard errors and status as JSON (the folder must exist)",
+    )
     p.add_argument("--out", default=None, metavar="DIR", help="folder for the figures (created; default: none)")
-    p.add_argument("--knots", type=_int_arg(2, MAX_KNOTS), default=None,
-                   help=f"variator: number of U21 spline knots over the record (default 7; 2…{MAX_KNOTS}, "
-                        "at most the number of samples)")
-    p.add_argument("--observe", nargs="+", default=None, metavar="CHANNEL",
-                   help="coordinates to fit (variator: phi1 and/or phi2; default: all the model observes)")
-    p.add_argument("--noise", nargs="+", type=_positive_float, default=None, metavar="SIGMA",
-                   help="noise std per observed channel, units of the channel (default: estimated from the data)")
+    p.add_argument(
+        "--knots",
+        type=_int_arg(2, MAX_KNOTS),
+        default=None,
+        help=f"variator: number of U21 spline knots over the record (default 7; 2…{MAX_KNOTS}, "
+        "at most the number of samples)",
+    )
+    p.add_argument(
+        "--observe",
+        nargs="+",
+        default=None,
+        metavar="CHANNEL",
+        help="coordinates to fit (variator: phi1 and/or phi2; default: all the model observes)",
+    )
+    p.add_argument(
+        "--noise",
+        nargs="+",
+        type=_positive_float,
+        default=None,
+        metavar="SIGMA",
+        help="noise std per observed channel, units of the channel (default: estimated from the data)",
+    )
     p.add_argument("--shooting", type=_int_arg(1, 1000), default=1, help="multiple-shooting segments (default 1)")
-    p.add_argument("--max-iterations", type=_int_arg(1, 100_000), default=100,
-                   help="Levenberg–Marquardt iteration limit (default 100)")
-    p.add_argument("--max-samples", type=_int_arg(1), default=None,
-                   help="refuse records with more samples than this (default 200000)")
+    p.add_argument(
+        "--max-iterations",
+        type=_int_arg(1, 100_000),
+        default=100,
+        help="Levenberg–Marquardt iteration limit (default 100)",
+    )
+    p.add_argument(
+        "--max-samples",
+        type=_int_arg(1),
+        default=None,
+        help="refuse records with more samples than this (default 200000)",
+    )
     p.add_argument("--every", type=_int_arg(1), default=1, help="keep every k-th data row (default 1: all)")
     p.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     p.set_defaults(func=run_fit)
@@ -154,8 +209,12 @@ def check_outputs(json_path, out_dir, data_path=None) -> None:
         why = check_writable_file(json_path, "--json")
         if why:
             raise BadInput(why)
-        if data_path is not None and os.path.exists(json_path) and os.path.exists(data_path) \
-                and os.path.samefile(json_path, data_path):
+        if (
+            data_path is not None
+            and os.path.exists(json_path)
+            and os.path.exists(data_path)
+            and os.path.samefile(json_path, data_path)
+        ):
             raise BadInput(f"--json {json_path}: is the input file; choose another name")
     if out_dir is not None:
         why = check_writable_dir(out_dir, "--out")
@@ -164,15 +223,19 @@ def check_outputs(json_path, out_dir, data_path=None) -> None:
         try:
             import matplotlib  # noqa: F401
         except ImportError:
-            raise BadInput("--out: figures need matplotlib (pip install matplotlib, or jaxnh[plot]); "
-                           "leave out --out to fit without figures") from None
+            raise BadInput(
+                "--out: figures need matplotlib (pip install matplotlib, or jaxnh[plot]); "
+                "leave out --out to fit without figures"
+            ) from None
 
 
 def _count_check(n_samples: int, n_channels: int, n_unknowns: int, what: str) -> None:
     if n_unknowns >= n_samples * n_channels:
-        raise BadInput(f"{what}: {n_unknowns} unknowns but only {n_samples} samples × {n_channels} channel(s) = "
-                       f"{n_samples * n_channels} measured values; fewer unknowns than values are needed "
-                       "(use fewer knots or free parameters, or more samples)")
+        raise BadInput(
+            f"{what}: {n_unknowns} unknowns but only {n_samples} samples × {n_channels} channel(s) = "
+            f"{n_samples * n_channels} measured values; fewer unknowns than values are needed "
+            "(use fewer knots or free parameters, or more samples)"
+        )
 
 
 def _magnitude_check(record, source) -> None:
@@ -180,9 +243,11 @@ def _magnitude_check(record, source) -> None:
     for name, v in {"t": record.t, **record.channels, **record.inputs}.items():
         big = float(np.max(np.abs(v))) if v.size else 0.0
         if big > MAX_ABS:
-            raise BadInput(f"{source}: column {name!r} has values up to {big:.3g} in magnitude; "
-                           f"beyond {MAX_ABS:.0e} squares and sums overflow in double precision — express the "
-                           "data in other units")
+            raise BadInput(
+                f"{source}: column {name!r} has values up to {big:.3g} in magnitude; "
+                f"beyond {MAX_ABS:.0e} squares and sums overflow in double precision — express the "
+                "data in other units"
+            )
 
 
 def _shooting_check(n: int, shooting: int) -> None:
@@ -191,8 +256,10 @@ def _shooting_check(n: int, shooting: int) -> None:
     if shooting > 1:
         length = math.ceil((n - 1) / shooting) + 1
         if length < 2 * RATE_WINDOW:
-            raise BadInput(f"--shooting {shooting}: segments of {length} samples are too short for {n} samples; "
-                           f"use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments")
+            raise BadInput(
+                f"--shooting {shooting}: segments of {length} samples are too short for {n} samples; "
+                f"use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments"
+            )
 
 
 class _ProgressPrinter:
@@ -203,8 +270,12 @@ class _ProgressPrinter:
 
     def __call__(self, done, total):
         if total:
-            print(f"\r  reading {self.path}: {100 * done / total:3.0f} % ({done / 1e6:.0f} of {total / 1e6:.0f} MB)",
-                  end="", file=sys.stderr, flush=True)
+            print(
+                f"\r  reading {self.path}: {100 * done / total:3.0f} % ({done / 1e6:.0f} of {total / 1e6:.0f} MB)",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
             self.open = True
 
     def close(self):
@@ -222,9 +293,14 @@ def _read(path, coordinates, inputs, args):
         size = 0
     progress = _ProgressPrinter(path) if size > PROGRESS_BYTES else None
     try:
-        return read_csv(path, coordinates=coordinates, inputs=inputs,
-                        max_samples=MAX_SAMPLES if args.max_samples is None else args.max_samples,
-                        every=args.every, progress=progress)
+        return read_csv(
+            path,
+            coordinates=coordinates,
+            inputs=inputs,
+            max_samples=MAX_SAMPLES if args.max_samples is None else args.max_samples,
+            every=args.every,
+            progress=progress,
+        )
     finally:
         if progress is not None:
             progress.close()
@@ -233,11 +309,17 @@ def _read(path, coordinates, inputs, args):
 # --- the command --------------------------------------------------------------------------------
 
 
+@dataclasses.dataclass
 class _Plan:
     """What to fit, decided and checked before fitting."""
 
-    def __init__(self, **kw):
-        self.__dict__.update(kw)
+    kind: str  # "variator" or "model"
+    record: Any
+    source: str
+    observe: tuple
+    knots: int | None = None
+    spec: Any = None
+    params: Any = None
 
 
 def _plan_variator(args):
@@ -257,8 +339,10 @@ def _plan_variator(args):
     _magnitude_check(record, source)
     knots = DEFAULT_KNOTS if args.knots is None else args.knots
     if knots > record.n:
-        raise BadInput(f"--knots {knots}: more knots than the {record.n} samples of the record; use at most "
-                       f"{min(record.n, MAX_KNOTS)} (the default is {DEFAULT_KNOTS})")
+        raise BadInput(
+            f"--knots {knots}: more knots than the {record.n} samples of the record; use at most "
+            f"{min(record.n, MAX_KNOTS)} (the default is {DEFAULT_KNOTS})"
+        )
     # unknowns: J1, J2, the knots, the observed initial angles and phi1'(0)
     _count_check(record.n, len(observe), 2 + knots + len(observe) + 1, f"--knots {knots}")
     _shooting_check(record.n, args.shooting)
@@ -272,14 +356,18 @@ def _plan_model(args):
     if args.knots is not None:
         raise BadInput("--knots applies to --model variator only; a user's model sets its own profiles' knots")
     if args.data is None:
-        raise BadInput(f"--model {args.model}: give the CSV file of measurements (the embedded record is "
-                       "the variator's)")
+        raise BadInput(
+            f"--model {args.model}: give the CSV file of measurements (the embedded record is the variator's)"
+        )
     spec = load_model(args.model)
-    observe = tuple(args.observe) if args.observe else tuple(spec.observed)
-    bad = [c for c in observe if c not in spec.observed]
+    observed = tuple(spec.observed or ())  # load_model filled it in (default: every coordinate)
+    observe = tuple(args.observe) if args.observe else observed
+    bad = [c for c in observe if c not in observed]
     if bad or len(set(observe)) != len(observe):
-        raise BadInput(f"--observe: expected names among the model's observed coordinates {list(spec.observed)} "
-                       f"(each once); got {list(observe)}")
+        raise BadInput(
+            f"--observe: expected names among the model's observed coordinates {list(observed)} "
+            f"(each once); got {list(observe)}"
+        )
     record = _read(args.data, observe, tuple(spec.inputs), args)
     _magnitude_check(record, args.data)
     try:
@@ -287,8 +375,9 @@ def _plan_model(args):
     except Exception as e:
         from .spec import _where_in_user_code
 
-        raise BadInput(f"--model {args.model}: FitSpec.params(record) raised {type(e).__name__}: {e}"
-                       f"{_where_in_user_code(e)}") from None
+        raise BadInput(
+            f"--model {args.model}: FitSpec.params(record) raised {type(e).__name__}: {e}{_where_in_user_code(e)}"
+        ) from None
     try:
         par = Parametrisation(params, spec.free, spec.positive)
     except (ValueError, TypeError) as e:
@@ -296,8 +385,7 @@ def _plan_model(args):
     n_coords = len(spec.mechanism.names)
     _count_check(record.n, len(observe), par.size + len(observe) + n_coords, f"--model {args.model}")
     _shooting_check(record.n, args.shooting)
-    return _Plan(kind="model", record=record, source=args.data, observe=observe, knots=None, spec=spec,
-                 params=params)
+    return _Plan(kind="model", record=record, source=args.data, observe=observe, knots=None, spec=spec, params=params)
 
 
 def run_fit(args) -> int:
@@ -308,23 +396,32 @@ def run_fit(args) -> int:
     try:
         check_outputs(args.json, args.out, args.data)
         if args.noise is not None and args.observe is not None and len(args.noise) not in (1, len(args.observe)):
-            raise BadInput(f"--noise: give 1 or {len(args.observe)} values (one per observed channel); "
-                           f"got {len(args.noise)}")
+            raise BadInput(
+                f"--noise: give 1 or {len(args.observe)} values (one per observed channel); got {len(args.noise)}"
+            )
         plan = _plan_variator(args) if args.model == "variator" else _plan_model(args)
         if args.noise is not None and len(args.noise) not in (1, len(plan.observe)):
-            raise BadInput(f"--noise: give 1 or {len(plan.observe)} values (one per observed channel "
-                           f"{', '.join(plan.observe)}); got {len(args.noise)}")
+            raise BadInput(
+                f"--noise: give 1 or {len(plan.observe)} values (one per observed channel "
+                f"{', '.join(plan.observe)}); got {len(args.noise)}"
+            )
     except (BadInput, ModelError, ValueError) as e:
         return _bad(e)
     except OSError as e:
         return _bad(f"{e.filename or args.data}: {e.strerror or e}")
-    noise = None if args.noise is None else dict(zip(plan.observe, np.broadcast_to(args.noise, (len(plan.observe),)).tolist()))
+    noise = (
+        None
+        if args.noise is None
+        else dict(zip(plan.observe, np.broadcast_to(args.noise, (len(plan.observe),)).tolist()))
+    )
     record = plan.record
     print(f"jaxnh fit — model {args.model}, data: {plan.source}")
-    desc = f"U21 spline with {plan.knots} knots" if plan.kind == "variator" else \
-        f"free {', '.join(plan.spec.free)}"
-    print(f"  {record.n} samples over {record.t[-1] - record.t[0]:.3g} s, channels {', '.join(plan.observe)}, "
-          f"inputs {', '.join(record.inputs) or 'none'}; {desc}", flush=True)
+    desc = f"U21 spline with {plan.knots} knots" if plan.kind == "variator" else f"free {', '.join(plan.spec.free)}"
+    print(
+        f"  {record.n} samples over {record.t[-1] - record.t[0]:.3g} s, channels {', '.join(plan.observe)}, "
+        f"inputs {', '.join(record.inputs) or 'none'}; {desc}",
+        flush=True,
+    )
     try:
         with warnings.catch_warnings(record=True):  # the table below says the same in context
             warnings.simplefilter("always")
@@ -342,8 +439,9 @@ def run_fit(args) -> int:
         return _failed(e, args, plan)
     truth = None
     try:
-        rep = _print_and_write(result, plan.source, args.json, args.out, record, truth, model=args.model,
-                               kind=plan.kind)
+        rep = _print_and_write(
+            result, plan.source, args.json, args.out, record, truth, model=args.model, kind=plan.kind
+        )
     except OSError as e:
         print(f"jaxnh fit: writing the results failed: {e}", file=sys.stderr)
         return EXIT_FAILED
@@ -359,8 +457,13 @@ def _failed(e, args, plan) -> int:
     first = str(e).strip().splitlines()[0] if str(e).strip() else ""
     msg = f"{type(e).__name__}: {first}"
     print(f"jaxnh fit: the fit failed: {msg} (JAXNH_DEBUG=1 shows the traceback)", file=sys.stderr)
-    rep = {"status": "error", "ok": False, "message": f"the fit failed: {msg}", "model": args.model,
-           "data": plan.source}
+    rep = {
+        "status": "error",
+        "ok": False,
+        "message": f"the fit failed: {msg}",
+        "model": args.model,
+        "data": plan.source,
+    }
     try:
         _write_json(rep, args.json)
     except OSError as e2:
@@ -378,8 +481,15 @@ def _fit(plan, args, noise):
     if plan.kind == "variator":
         from .variator import fit_variator
 
-        return fit_variator(plan.record, knots=plan.knots, observe=plan.observe, noise=noise,
-                            shooting=args.shooting, max_iterations=args.max_iterations, progress=not args.quiet)
+        return fit_variator(
+            plan.record,
+            knots=plan.knots,
+            observe=plan.observe,
+            noise=noise,
+            shooting=args.shooting,
+            max_iterations=args.max_iterations,
+            progress=not args.quiet,
+        )
     from ._fit import fit
 
     spec = plan.spec
@@ -391,8 +501,9 @@ def _fit(plan, args, noise):
         kw.setdefault("q0", spec.q0)
     if spec.qd0 is not None:
         kw.setdefault("qd0", spec.qd0)
-    return fit(spec.mechanism, plan.params, plan.record, free=spec.free, positive=spec.positive,
-               observe=plan.observe, **kw)
+    return fit(
+        spec.mechanism, plan.params, plan.record, free=spec.free, positive=spec.positive, observe=plan.observe, **kw
+    )
 
 
 def _write_json(rep, path) -> None:
@@ -412,8 +523,18 @@ def _figures(result, record, truth, kind):
     from .plots import plot_fit, plot_ratio
 
     if kind == "variator":
-        figs = [("fit_data.png", plot_fit(result, record, ylabel="angle [rad]", input_label="torque [N·m]",
-                                          title="encoder angles: measured (dots) and fitted simulation (lines)"))]
+        figs = [
+            (
+                "fit_data.png",
+                plot_fit(
+                    result,
+                    record,
+                    ylabel="angle [rad]",
+                    input_label="torque [N·m]",
+                    title="encoder angles: measured (dots) and fitted simulation (lines)",
+                ),
+            )
+        ]
     else:
         figs = [("fit_data.png", plot_fit(result, record))]
     if kind == "variator":
@@ -504,18 +625,25 @@ def estimate_table(result, truth=None) -> str:
         scale, unit = 1e3, " mrad"
     else:
         scale, unit = 1.0, ""
-    lines.append(f"  rms residual {scale * result.rms_residual:.4g}{unit} ("
-                 + ", ".join(f"{c} {scale * v:.4g}" for c, v in result.rms_by_channel.items())
-                 + "); noise σ " + ", ".join(f"{c} {scale * v:.4g}" for c, v in result.noise.items())
-                 + f"{unit}; s² = {result.chi2_dof:.3f}")
+    lines.append(
+        f"  rms residual {scale * result.rms_residual:.4g}{unit} ("
+        + ", ".join(f"{c} {scale * v:.4g}" for c, v in result.rms_by_channel.items())
+        + "); noise σ "
+        + ", ".join(f"{c} {scale * v:.4g}" for c, v in result.noise.items())
+        + f"{unit}; s² = {result.chi2_dof:.3f}"
+    )
     lines.append("  " + result.lack_of_fit.message)
-    lines.append(f"  {result.iterations} iterations, {'converged' if result.converged else 'NOT CONVERGED'}: "
-                 f"{result.message}; {result.elapsed:.1f} s")
+    lines.append(
+        f"  {result.iterations} iterations, {'converged' if result.converged else 'NOT CONVERGED'}: "
+        f"{result.message}; {result.elapsed:.1f} s"
+    )
     if result.identifiability.messages:
         lines += ["  " + m for m in result.identifiability.messages]
     else:
-        lines.append(f"  all parameters identifiable (condition number of the scaled Jacobian "
-                     f"{result.identifiability.condition:.3g})")
+        lines.append(
+            f"  all parameters identifiable (condition number of the scaled Jacobian "
+            f"{result.identifiability.condition:.3g})"
+        )
     return "\n".join(lines)
 
 
@@ -536,24 +664,32 @@ def demo_fit(out_dir: str = "jaxnh_out", figures: bool = True) -> dict:
     record = load_default()
     truth = _truth()
     print("\n4. Parameter identification on the embedded record (jaxnh fit)")
-    print(f"   {record.n} samples over {record.t[-1]:.3g} s at {1 / np.median(np.diff(record.t)):.0f} Hz: "
-          "two quantised encoders, motor and load torque, U21 changing from "
-          f"{truth['U21_values'][0]} to {truth['U21_values'][-1]}")
-    print("   unknowns: J1, J2, U21 at 7 knots, phi1(0), phi2(0), phi1'(0); Levenberg–Marquardt, "
-          "Jacobian from forward sensitivities integrated with the solve (first call compiles)")
+    print(
+        f"   {record.n} samples over {record.t[-1]:.3g} s at {1 / np.median(np.diff(record.t)):.0f} Hz: "
+        "two quantised encoders, motor and load torque, U21 changing from "
+        f"{truth['U21_values'][0]} to {truth['U21_values'][-1]}"
+    )
+    print(
+        "   unknowns: J1, J2, U21 at 7 knots, phi1(0), phi2(0), phi1'(0); Levenberg–Marquardt, "
+        "Jacobian from forward sensitivities integrated with the solve (first call compiles)"
+    )
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
         result = fit_variator(record, progress=True)
     os.makedirs(out_dir, exist_ok=True)
-    rep = _print_and_write(result, "embedded", os.path.join(out_dir, "fit.json"), out_dir if figures else None,
-                           record, truth)
-    inside = {k: bool(abs(truth[k] - result.estimates[k]["value"]) <= Z95 * result.estimates[k]["std"])
-              for k in ("J1", "J2")}
+    rep = _print_and_write(
+        result, "embedded", os.path.join(out_dir, "fit.json"), out_dir if figures else None, record, truth
+    )
+    inside = {
+        k: bool(abs(truth[k] - result.estimates[k]["value"]) <= Z95 * result.estimates[k]["std"]) for k in ("J1", "J2")
+    }
     v, s = np.asarray(result.estimates["U21"]["value"]), np.asarray(result.estimates["U21"]["std"])
     inside["U21_knots"] = bool(np.all(np.abs(np.asarray(truth["U21_values"]) - v) <= Z95 * s))
     rep["truth_inside_95"] = inside
-    print(f"   true values inside the 95 % intervals: J1 {inside['J1']}, J2 {inside['J2']}, "
-          f"all U21 knots {inside['U21_knots']}")
+    print(
+        f"   true values inside the 95 % intervals: J1 {inside['J1']}, J2 {inside['J2']}, "
+        f"all U21 knots {inside['U21_knots']}"
+    )
     return rep
 
 

@@ -25,8 +25,17 @@ from importlib import resources
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["Record", "read_csv", "write_csv", "load_default", "noise_level", "DEFAULT_DATA", "MIN_SAMPLES",
-           "MAX_SAMPLES"]
+
+__all__ = [
+    "Record",
+    "read_csv",
+    "write_csv",
+    "load_default",
+    "noise_level",
+    "DEFAULT_DATA",
+    "MIN_SAMPLES",
+    "MAX_SAMPLES",
+]
 
 DEFAULT_DATA = "variator_record.csv"
 MIN_SAMPLES = 20
@@ -72,7 +81,7 @@ class Record:
     channels: dict
     inputs: dict = dataclasses.field(default_factory=dict)
     source: str = ""
-    sigma: dict | None = None
+    sigma: dict | float | None = None
 
     def __post_init__(self):
         where = self.source or "Record"
@@ -86,8 +95,10 @@ class Record:
         object.__setattr__(self, "inputs", {str(k): _as_column(v, k, where) for k, v in self.inputs.items()})
         both = set(self.channels) & set(self.inputs)
         if both or "t" in self.channels or "t" in self.inputs:
-            raise ValueError(f"{where}: a name is used twice (time, channel and input names must differ): "
-                             f"{sorted(both | ({'t'} & (set(self.channels) | set(self.inputs))))}")
+            raise ValueError(
+                f"{where}: a name is used twice (time, channel and input names must differ): "
+                f"{sorted(both | ({'t'} & (set(self.channels) | set(self.inputs))))}"
+            )
         if self.sigma is not None:
             object.__setattr__(self, "sigma", _check_sigma(self.sigma, tuple(self.channels), where))
         _check_columns({"t": t, **self.channels, **self.inputs}, where)
@@ -99,23 +110,37 @@ class Record:
 
     def head(self, n: int) -> "Record":
         """The first n samples (for quick tests and previews)."""
-        return Record(self.t[:n], {k: v[:n] for k, v in self.channels.items()},
-                      {k: v[:n] for k, v in self.inputs.items()}, self.source + f" (first {n} samples)", self.sigma)
+        return Record(
+            self.t[:n],
+            {k: v[:n] for k, v in self.channels.items()},
+            {k: v[:n] for k, v in self.inputs.items()},
+            self.source + f" (first {n} samples)",
+            self.sigma,
+        )
 
     def every(self, k: int) -> "Record":
         """Every k-th sample (a lower sampling rate)."""
-        return Record(self.t[::k], {c: v[::k] for c, v in self.channels.items()},
-                      {c: v[::k] for c, v in self.inputs.items()}, self.source + f" (every {k}th sample)", self.sigma)
+        return Record(
+            self.t[::k],
+            {c: v[::k] for c, v in self.channels.items()},
+            {c: v[::k] for c, v in self.inputs.items()},
+            self.source + f" (every {k}th sample)",
+            self.sigma,
+        )
 
     def observed(self, names) -> np.ndarray:
         """The channels `names` stacked as (n, len(names))."""
         missing = [c for c in names if c not in self.channels]
         if missing:
-            raise ValueError(f"observe={tuple(names)!r}: the record has no channel(s) {missing}; it has {list(self.channels)}")
+            raise ValueError(
+                f"observe={tuple(names)!r}: the record has no channel(s) {missing}; it has {list(self.channels)}"
+            )
         return np.stack([self.channels[c] for c in names], axis=1)
 
     @classmethod
-    def from_dataframe(cls, df, time: str = "t", observed=None, inputs=(), sigma=None, source: str = "") -> "Record":
+    def from_dataframe(
+        cls, df, time: str | None = "t", observed=None, inputs=(), sigma=None, source: str = ""
+    ) -> "Record":
         """A record from a pandas DataFrame (pandas is needed only for this).
 
         Arguments:
@@ -139,8 +164,10 @@ class Record:
         try:
             import pandas as pd
         except ImportError:
-            raise ImportError("Record.from_dataframe needs pandas (pip install pandas); without it, build the "
-                              "record from arrays: Record(t, {name: samples}, {name: samples})") from None
+            raise ImportError(
+                "Record.from_dataframe needs pandas (pip install pandas); without it, build the "
+                "record from arrays: Record(t, {name: samples}, {name: samples})"
+            ) from None
         where = source or "DataFrame"
         if not isinstance(df, pd.DataFrame):
             raise TypeError(f"Record.from_dataframe: df must be a pandas.DataFrame; got {type(df).__name__}")
@@ -204,7 +231,9 @@ def _check_sigma(sigma, channels, where) -> dict:
         except (TypeError, ValueError):
             raise ValueError(f"{where}: sigma for {k!r} must be a number; got {v!r}") from None
         if not (math.isfinite(v) and v > 0):
-            raise ValueError(f"{where}: sigma for {k!r} must be finite and > 0 (a noise standard deviation); got {_num(v)}")
+            raise ValueError(
+                f"{where}: sigma for {k!r} must be finite and > 0 (a noise standard deviation); got {_num(v)}"
+            )
         out[k] = v
     return out
 
@@ -217,7 +246,9 @@ def _check_columns(cols: dict, where: str, min_samples: int = MIN_SAMPLES, lines
         raise ValueError(f"{where}: t must be 1-D; got shape {t.shape}")
     for name, v in cols.items():
         if v.shape != t.shape:
-            raise ValueError(f"{where}: column {name!r} has {v.shape[0] if v.ndim else 'no'} samples, t has {t.shape[0]}")
+            raise ValueError(
+                f"{where}: column {name!r} has {v.shape[0] if v.ndim else 'no'} samples, t has {t.shape[0]}"
+            )
         bad = np.nonzero(~np.isfinite(v))[0]
         if bad.size:
             i = int(bad[0])
@@ -234,8 +265,10 @@ def _check_columns(cols: dict, where: str, min_samples: int = MIN_SAMPLES, lines
     if np.any(bad):
         i = int(np.nonzero(bad)[0][0])
         if not np.isfinite(dt[i]):
-            raise ValueError(f"{where}: the time step between {_at(i, lines)} and {_at(i + 1, lines)} overflows "
-                             f"(t = {_num(t[i])}, {_num(t[i + 1])}); times must be in seconds of a finite range")
+            raise ValueError(
+                f"{where}: the time step between {_at(i, lines)} and {_at(i + 1, lines)} overflows "
+                f"(t = {_num(t[i])}, {_num(t[i + 1])}); times must be in seconds of a finite range"
+            )
         kind = "repeated" if dt[i] == 0 else "decreasing"
         raise ValueError(
             f"{where}: times must be strictly increasing; {kind} time at {_at(i, lines)} and {_at(i + 1, lines)} "
@@ -243,8 +276,15 @@ def _check_columns(cols: dict, where: str, min_samples: int = MIN_SAMPLES, lines
         )
 
 
-def read_csv(path, coordinates=("phi1", "phi2"), inputs=("M1", "M2"), min_samples: int = MIN_SAMPLES,
-             max_samples: int | None = MAX_SAMPLES, every: int = 1, progress=None) -> Record:
+def read_csv(
+    path,
+    coordinates=("phi1", "phi2"),
+    inputs=("M1", "M2"),
+    min_samples: int = MIN_SAMPLES,
+    max_samples: int | None = MAX_SAMPLES,
+    every: int = 1,
+    progress=None,
+) -> Record:
     """Read a measured record from a CSV file with a header row.
 
     Format: UTF-8 text (a byte-order mark is accepted), comma-separated, one
@@ -284,15 +324,32 @@ def read_csv(path, coordinates=("phi1", "phi2"), inputs=("M1", "M2"), min_sample
             total = os.fstat(f.fileno()).st_size
         except OSError:
             total = 0
-        return _parse_lines(_bounded_lines(f), path, tuple(coordinates), tuple(inputs), min_samples, max_samples, every,
-                            progress, total)
+        return _parse_lines(
+            _bounded_lines(f), path, tuple(coordinates), tuple(inputs), min_samples, max_samples, every, progress, total
+        )
 
 
-def _parse(text: str, where: str, coordinates: tuple, inputs: tuple, min_samples: int,
-           max_samples: int | None = MAX_SAMPLES, every: int = 1) -> Record:
+def _parse(
+    text: str,
+    where: str,
+    coordinates: tuple,
+    inputs: tuple,
+    min_samples: int,
+    max_samples: int | None = MAX_SAMPLES,
+    every: int = 1,
+) -> Record:
     """Parse CSV text (see `read_csv`)."""
-    return _parse_lines(iter(text.encode("utf-8").splitlines(keepends=True)), where, coordinates, inputs,
-                        min_samples, max_samples, every, None, 0)
+    return _parse_lines(
+        iter(text.encode("utf-8").splitlines(keepends=True)),
+        where,
+        coordinates,
+        inputs,
+        min_samples,
+        max_samples,
+        every,
+        None,
+        0,
+    )
 
 
 def _bounded_lines(f):
@@ -321,8 +378,9 @@ def _number(s: str, where: str, lineno: int, name: str) -> float:
         hint = " (digit separators such as _ are not CSV numbers)" if "_" in s else ""
         raise ValueError(f"{where}: line {lineno}, column {name!r}: {s!r} is not a number{hint}") from None
     if math.isinf(x) and "inf" not in s.lower():
-        raise ValueError(f"{where}: line {lineno}, column {name!r}: {s!r} is beyond the range of 64-bit floats "
-                         "(about ±1.8e308)")
+        raise ValueError(
+            f"{where}: line {lineno}, column {name!r}: {s!r} is beyond the range of 64-bit floats (about ±1.8e308)"
+        )
     return x
 
 
@@ -334,7 +392,8 @@ def _parse_lines(lines, where, coordinates, inputs, min_samples, max_samples, ev
     wanted = ("t",) + tuple(coordinates) + tuple(inputs)
     if len(set(wanted)) != len(wanted):
         raise ValueError(f"{where}: the column names asked for repeat: {list(wanted)}")
-    header = idx = None
+    header: list | None = None
+    idx: list = []
     blocks, block, line_blocks, line_block = [], [], [], []
     kept = data_rows = 0
     done_bytes = 0
@@ -344,16 +403,20 @@ def _parse_lines(lines, where, coordinates, inputs, min_samples, max_samples, ev
         lineno += 1
         done_bytes += len(raw)
         if len(raw) > MAX_LINE_BYTES:
-            raise ValueError(f"{where}: line {lineno} is longer than {MAX_LINE_BYTES} bytes; expected a CSV file "
-                             "with one sample per line")
+            raise ValueError(
+                f"{where}: line {lineno} is longer than {MAX_LINE_BYTES} bytes; expected a CSV file "
+                "with one sample per line"
+            )
         if progress is not None and time.monotonic() >= next_report:
             progress(done_bytes, total)
             next_report = time.monotonic() + 1.0
         try:
             line = raw.decode("utf-8-sig" if lineno == 1 else "utf-8")
         except UnicodeDecodeError as e:
-            raise ValueError(f"{where}: line {lineno} is not UTF-8 text (byte {e.start + 1} of the line: "
-                             f"{raw[e.start:e.start + 1]!r}); expected a text CSV file") from None
+            raise ValueError(
+                f"{where}: line {lineno} is not UTF-8 text (byte {e.start + 1} of the line: "
+                f"{raw[e.start : e.start + 1]!r}); expected a text CSV file"
+            ) from None
         if "\x00" in line:
             raise ValueError(f"{where}: line {lineno} contains a NUL byte; expected a text CSV file")
         stripped = line.strip()
@@ -376,14 +439,17 @@ def _parse_lines(lines, where, coordinates, inputs, min_samples, max_samples, ev
                     hint = " — the separator must be a comma"
                 elif not any(c in header for c in wanted) and all(_looks_numeric(h) for h in header):
                     hint = " — the first non-comment line must be a header naming the columns"
-                raise ValueError(f"{where}: missing column(s) {missing}; the header (line {lineno}) has {header}; "
-                                 f"expected {list(wanted)}{hint}")
+                raise ValueError(
+                    f"{where}: missing column(s) {missing}; the header (line {lineno}) has {header}; "
+                    f"expected {list(wanted)}{hint}"
+                )
             idx = [header.index(c) for c in wanted]
             header_line = lineno
             continue
         if len(fields) != len(header):
-            raise ValueError(f"{where}: line {lineno} has {len(fields)} fields; the header (line {header_line}) "
-                             f"has {len(header)}")
+            raise ValueError(
+                f"{where}: line {lineno} has {len(fields)} fields; the header (line {header_line}) has {len(header)}"
+            )
         data_rows += 1
         if (data_rows - 1) % every:
             continue
@@ -394,9 +460,10 @@ def _parse_lines(lines, where, coordinates, inputs, min_samples, max_samples, ev
             raise ValueError(
                 f"{where}: more than {max_samples} samples (reached at line {lineno}"
                 + (f" of about {total / max(done_bytes / lineno, 1):.0f}" if total else "")
-                + f"); a fit's memory and time grow with the samples. Keep every k-th sample "
+                + "); a fit's memory and time grow with the samples. Keep every k-th sample "
                 "(`jaxnh fit --every K`, `read_csv(..., every=K)`), cut the record, or raise the limit "
-                "(`--max-samples N`, `read_csv(..., max_samples=N)`)")
+                "(`--max-samples N`, `read_csv(..., max_samples=N)`)"
+            )
         if len(block) == _CHUNK:
             blocks.append(np.asarray(block, dtype=float))
             line_blocks.append(np.asarray(line_block, dtype=np.int64))

@@ -15,6 +15,7 @@ import dataclasses
 
 import numpy as np
 
+
 __all__ = ["Identifiability", "analyse", "LackOfFit", "lack_of_fit"]
 
 SHOW_COMPONENT = 0.05  # components of a direction smaller than this (relative) are not named
@@ -70,7 +71,9 @@ def analyse(stats: dict, labels, log_mask, rank_tol: float) -> Identifiability:
     messages, undetermined = [], []
     dead = [labels[j] for j in range(len(labels)) if c[j] == 0]
     if dead:
-        messages.append(f"{', '.join(dead)} do(es) not affect the observed channels at all: not identifiable from these data.")
+        messages.append(
+            f"{', '.join(dead)} do(es) not affect the observed channels at all: not identifiable from these data."
+        )
     for i in np.nonzero(~(sv > rank_tol))[0]:
         d = Vt[i] / np.where(c > 0, c, 1.0)  # direction in θ (log units for positive parameters)
         d = d / np.max(np.abs(d))
@@ -94,18 +97,25 @@ def analyse(stats: dict, labels, log_mask, rank_tol: float) -> Identifiability:
         if len(names) == 2 and all_log:
             a, b = coeff
             if a * b > 0:  # θ1^b / θ2^a is invariant
-                ratio = f"{names[0]}{_fmt_power(b / a)}/{names[1]}" if abs(b / a - 1) >= 0.05 else f"{names[0]}/{names[1]}"
+                ratio = (
+                    f"{names[0]}{_fmt_power(b / a)}/{names[1]}" if abs(b / a - 1) >= 0.05 else f"{names[0]}/{names[1]}"
+                )
                 entry["identifiable"] = ratio
             else:
                 entry["identifiable"] = f"{names[0]}{_fmt_power(-b / a)}·{names[1]}"
         elif len(names) == 2:
             a, b = coeff
             entry["identifiable"] = f"{b:+.3g}·{names[0]} {-a:+.3g}·{names[1]}"
-        msg = (f"NOT IDENTIFIABLE: {what} leaves the simulated channels unchanged "
-               f"(relative singular value {sv[i]:.1e}); the data do not determine "
-               f"{' and '.join(names) if len(names) <= 3 else 'these parameters'} separately")
-        msg += f" — only {entry['identifiable']} is determined." if entry["identifiable"] else \
-            " — only combinations orthogonal to this direction are determined."
+        msg = (
+            f"NOT IDENTIFIABLE: {what} leaves the simulated channels unchanged "
+            f"(relative singular value {sv[i]:.1e}); the data do not determine "
+            f"{' and '.join(names) if len(names) <= 3 else 'these parameters'} separately"
+        )
+        msg += (
+            f" — only {entry['identifiable']} is determined."
+            if entry["identifiable"]
+            else " — only combinations orthogonal to this direction are determined."
+        )
         entry["message"] = msg
         undetermined.append(entry)
         messages.append(msg)
@@ -165,8 +175,9 @@ class LackOfFit:
     message: str
 
 
-def lack_of_fit(residuals, sigma, s2: float, dof: int, noise_estimated: bool, channels,
-                converged: bool = True) -> LackOfFit:
+def lack_of_fit(
+    residuals, sigma, s2: float, dof: int, noise_estimated: bool, channels, converged: bool = True
+) -> LackOfFit:
     """The `LackOfFit` of a fit from its residuals (n, k) (units of the channels),
     the noise σ per channel (k,), s², the degrees of freedom, and whether σ was
     estimated from the same record (then its uncertainty widens the test).
@@ -190,21 +201,36 @@ def lack_of_fit(residuals, sigma, s2: float, dof: int, noise_estimated: bool, ch
     significant = bool(s2 > threshold)
     ac = ", ".join(f"{c} {v:+.2f}" for c, v in rho.items())
     if not (np.all(np.isfinite(residuals)) and np.all(np.isfinite(sigma)) and np.isfinite(s2)):
-        msg = ("The misfit cannot be judged: the residuals or the noise levels are not finite "
-               "(a failed simulation, or data whose values overflow in double precision).")
-        return LackOfFit(float(s2), float(threshold), False, float("nan"), {c: float("nan") for c in channels},
-                         {c: float("nan") for c in channels}, msg)
+        msg = (
+            "The misfit cannot be judged: the residuals or the noise levels are not finite "
+            "(a failed simulation, or data whose values overflow in double precision)."
+        )
+        return LackOfFit(
+            float(s2),
+            float(threshold),
+            False,
+            float("nan"),
+            {c: float("nan") for c in channels},
+            {c: float("nan") for c in channels},
+            msg,
+        )
     if significant and not converged:
-        msg = (f"The residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g}), but the fit has not "
-               "converged: the misfit may be the optimiser's rather than the model's.")
+        msg = (
+            f"The residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g}), but the fit has not "
+            "converged: the misfit may be the optimiser's rather than the model's."
+        )
     elif significant:
-        msg = (f"LACK OF FIT: the residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g} > {threshold:.3g}, "
-               f"the 1 % significance limit): a model error of about {ratio:.3g}× the noise ("
-               + ", ".join(f"{c} {v:.3g}" for c, v in per.items())
-               + f" rms) that the model cannot represent; residual lag-1 autocorrelation {ac}. "
-               "Standard errors treat it as noise and are only indicative.")
+        msg = (
+            f"LACK OF FIT: the residuals are {np.sqrt(s2):.3g}× the noise level (s² = {s2:.4g} > {threshold:.3g}, "
+            f"the 1 % significance limit): a model error of about {ratio:.3g}× the noise ("
+            + ", ".join(f"{c} {v:.3g}" for c, v in per.items())
+            + f" rms) that the model cannot represent; residual lag-1 autocorrelation {ac}. "
+            "Standard errors treat it as noise and are only indicative."
+        )
     else:
-        msg = (f"The model fits to within the noise: s² = {s2:.4g} (1 % significance limit {threshold:.3g}); "
-               f"model error below about {np.sqrt(max(threshold - 1, 0)):.2g}× the noise; residual lag-1 "
-               f"autocorrelation {ac}.")
+        msg = (
+            f"The model fits to within the noise: s² = {s2:.4g} (1 % significance limit {threshold:.3g}); "
+            f"model error below about {np.sqrt(max(threshold - 1, 0)):.2g}× the noise; residual lag-1 "
+            f"autocorrelation {ac}."
+        )
     return LackOfFit(float(s2), float(threshold), significant, ratio, per, rho, msg)

@@ -12,6 +12,7 @@ import numpy as np
 
 from ._fit import FitResult
 
+
 __all__ = ["plot_fit", "plot_ratio"]
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -43,12 +44,15 @@ def _finite_or_nan(x):
 
 def _check_path_arg(x, name):
     if isinstance(x, (str, bytes)) or hasattr(x, "__fspath__"):
-        raise TypeError(f"{name}: the plot functions return a Figure and no longer take a file path; "
-                        f"use fig = {name}(...) then fig.savefig({str(x)!r})")
+        raise TypeError(
+            f"{name}: the plot functions return a Figure and no longer take a file path; "
+            f"use fig = {name}(...) then fig.savefig({str(x)!r})"
+        )
 
 
-def plot_fit(result: FitResult, record=None, *, fig=None, title: str = "", ylabel: str = "coordinate",
-             input_label: str = "input"):
+def plot_fit(
+    result: FitResult, record=None, *, fig=None, title: str = "", ylabel: str = "coordinate", input_label: str = "input"
+):
     """Measured and fitted coordinates, the residuals per channel with ±2σ noise
     lines, and (given the record) the applied inputs.
 
@@ -84,9 +88,16 @@ def plot_fit(result: FitResult, record=None, *, fig=None, title: str = "", ylabe
             a.axhline(sign * s, color="0.5", lw=0.8, ls="--")
         a.axhline(0, color="k", lw=0.6)
         a.set(ylabel=f"{c} residual\n[×1e-3]")
-        a.text(0.99, 0.95, f"rms {1e3 * result.rms_by_channel[c]:.3f}e-3, noise σ {s:.3f}e-3 (dashed ±2σ)",
-               transform=a.transAxes, ha="right", va="top", fontsize=8)
-    if rows > 1 + k:
+        a.text(
+            0.99,
+            0.95,
+            f"rms {1e3 * result.rms_by_channel[c]:.3f}e-3, noise σ {s:.3f}e-3 (dashed ±2σ)",
+            transform=a.transAxes,
+            ha="right",
+            va="top",
+            fontsize=8,
+        )
+    if rows > 1 + k and record is not None:
         a = ax[-1]
         for j, (name, v) in enumerate(record.inputs.items()):
             a.plot(record.t, v, color=f"C{j + 2}", label=name)

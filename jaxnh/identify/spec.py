@@ -52,6 +52,7 @@ import sys
 import traceback
 from typing import Any, Callable, Optional, Sequence, Union
 
+
 __all__ = ["FitSpec", "load_model", "ModelError"]
 
 
@@ -129,14 +130,15 @@ def _import(module: str, ref: str):
         if spec is None or spec.loader is None:
             raise ModelError(f"--model {ref}: cannot load {module} as Python")
         mod = importlib.util.module_from_spec(spec)
-        mod.__jaxnh_mtime__ = mtime
+        setattr(mod, "__jaxnh_mtime__", mtime)
         sys.modules[name] = mod
         try:
             spec.loader.exec_module(mod)
         except Exception as e:
             sys.modules.pop(name, None)
-            raise ModelError(f"--model {ref}: importing {module} raised {type(e).__name__}: {e}"
-                             f"{_where_in_user_code(e)}") from None
+            raise ModelError(
+                f"--model {ref}: importing {module} raised {type(e).__name__}: {e}{_where_in_user_code(e)}"
+            ) from None
         return mod
     added = os.getcwd() not in sys.path
     if added:
@@ -145,13 +147,17 @@ def _import(module: str, ref: str):
         return importlib.import_module(module)
     except ModuleNotFoundError as e:
         if e.name and module.startswith(e.name):
-            raise ModelError(f"--model {ref}: no module named {e.name!r} (give an importable module, or a "
-                             "file: --model path/to/file.py:function)") from None
-        raise ModelError(f"--model {ref}: importing {module} raised {type(e).__name__}: {e}"
-                         f"{_where_in_user_code(e)}") from None
+            raise ModelError(
+                f"--model {ref}: no module named {e.name!r} (give an importable module, or a "
+                "file: --model path/to/file.py:function)"
+            ) from None
+        raise ModelError(
+            f"--model {ref}: importing {module} raised {type(e).__name__}: {e}{_where_in_user_code(e)}"
+        ) from None
     except Exception as e:
-        raise ModelError(f"--model {ref}: importing {module} raised {type(e).__name__}: {e}"
-                         f"{_where_in_user_code(e)}") from None
+        raise ModelError(
+            f"--model {ref}: importing {module} raised {type(e).__name__}: {e}{_where_in_user_code(e)}"
+        ) from None
     finally:
         if added:
             try:
@@ -180,26 +186,34 @@ def load_model(ref: str) -> FitSpec:
     try:
         spec = fn()
     except Exception as e:
-        raise ModelError(f"--model {ref}: calling {func}() raised {type(e).__name__}: {e}{_where_in_user_code(e)}") \
-            from None
+        raise ModelError(
+            f"--model {ref}: calling {func}() raised {type(e).__name__}: {e}{_where_in_user_code(e)}"
+        ) from None
     if isinstance(spec, dict):
         unknown = set(spec) - {f.name for f in dataclasses.fields(FitSpec)}
         if unknown:
-            raise ModelError(f"--model {ref}: {func}() returned a dict with unknown key(s) {sorted(unknown)}; "
-                             f"keys are {[f.name for f in dataclasses.fields(FitSpec)]}")
+            raise ModelError(
+                f"--model {ref}: {func}() returned a dict with unknown key(s) {sorted(unknown)}; "
+                f"keys are {[f.name for f in dataclasses.fields(FitSpec)]}"
+            )
         try:
             spec = FitSpec(**spec)
         except TypeError as e:
             raise ModelError(f"--model {ref}: {func}() returned a dict that is not a FitSpec: {e}") from None
     if not isinstance(spec, FitSpec):
-        raise ModelError(f"--model {ref}: {func}() must return a jaxnh.identify.spec.FitSpec (or a dict with its "
-                         f"keys); got {type(spec).__name__}")
+        raise ModelError(
+            f"--model {ref}: {func}() must return a jaxnh.identify.spec.FitSpec (or a dict with its "
+            f"keys); got {type(spec).__name__}"
+        )
     if not isinstance(spec.mechanism, Mechanism):
-        raise ModelError(f"--model {ref}: FitSpec.mechanism must be a jaxnh.Mechanism; got "
-                         f"{type(spec.mechanism).__name__}")
+        raise ModelError(
+            f"--model {ref}: FitSpec.mechanism must be a jaxnh.Mechanism; got {type(spec.mechanism).__name__}"
+        )
     if spec.mechanism.names is None:
-        raise ModelError(f"--model {ref}: the mechanism needs coordinate names (Mechanism(..., names=(...))): "
-                         "they are the CSV columns of the measured coordinates")
+        raise ModelError(
+            f"--model {ref}: the mechanism needs coordinate names (Mechanism(..., names=(...))): "
+            "they are the CSV columns of the measured coordinates"
+        )
     names = tuple(spec.mechanism.names)
     spec.free = _names(spec.free, f"--model {ref}: FitSpec.free")
     if not spec.free:
@@ -211,8 +225,10 @@ def load_model(ref: str) -> FitSpec:
     observed = _names(spec.observed, f"--model {ref}: FitSpec.observed") if spec.observed is not None else names
     bad = [c for c in observed if c not in names]
     if bad or not observed:
-        raise ModelError(f"--model {ref}: FitSpec.observed must name coordinates of the mechanism {list(names)}; "
-                         f"got {list(observed)}")
+        raise ModelError(
+            f"--model {ref}: FitSpec.observed must name coordinates of the mechanism {list(names)}; "
+            f"got {list(observed)}"
+        )
     spec.observed = observed
     spec.inputs = _names(spec.inputs, f"--model {ref}: FitSpec.inputs")
     clash = [c for c in spec.inputs if c in names or c == "t"]

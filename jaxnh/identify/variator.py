@@ -13,14 +13,15 @@ is linear in J1 and J2, so ordinary least squares gives them.
 
 from __future__ import annotations
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..models import variator as V
 from ..profiles import CubicSpline, Sampled
+from ._fit import fit, FitResult
 from .data import Record
-from ._fit import FitResult, fit
+
 
 __all__ = ["FREE", "DEFAULT_KNOTS", "params_for", "ratio_knots", "starting_guess", "fit_variator", "report"]
 
@@ -69,9 +70,14 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     win = max(7, int(round(SMOOTHING_WINDOW / dt)) | 1)  # odd window of about 0.12 s
     if win > len(t):
         win = len(t) if len(t) % 2 else len(t) - 1
-    d = {c: (savgol_filter(record.channels[c], win, 3, deriv=1, delta=dt),
-             savgol_filter(record.channels[c], win, 3, deriv=2, delta=dt))
-         for c in observe if c in record.channels}
+    d = {
+        c: (
+            np.asarray(savgol_filter(record.channels[c], win, 3, deriv=1, delta=dt), dtype=float),
+            np.asarray(savgol_filter(record.channels[c], win, 3, deriv=2, delta=dt), dtype=float),
+        )
+        for c in observe
+        if c in record.channels
+    }
     B = _spline_basis(knots, t)
     if "phi1" in d and "phi2" in d:
         w1, w2 = d["phi1"][0], d["phi2"][0]
@@ -101,8 +107,9 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     return float(J1), float(J2), U21
 
 
-def fit_variator(record: Record, *, knots=DEFAULT_KNOTS, J1=None, J2=None, U21=None, observe=None,
-                 noise=None, **kwargs) -> FitResult:
+def fit_variator(
+    record: Record, *, knots=DEFAULT_KNOTS, J1=None, J2=None, U21=None, observe=None, noise=None, **kwargs
+) -> FitResult:
     """Fit J1, J2 and U21(t) of the variator to a record.
 
     Arguments:
@@ -156,16 +163,18 @@ def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
     knots = np.asarray(result.params.U21.knots)
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = {k: np.float64(est[k]["std"]) / np.float64(est[k]["value"]) for k in ("J1", "J2")}
-    out.update({
-        "J1": {"value": est["J1"]["value"], "std": est["J1"]["std"]},
-        "J2": {"value": est["J2"]["value"], "std": est["J2"]["std"]},
-        "U21": {"t": ts, "value": u, "std": us},
-        "relative_std": rel,
-        "U21_knots": {"t": knots, "value": est["U21"]["value"], "std": est["U21"]["std"]},
-        "messages": list(result.identifiability.messages),
-        "data": source,
-        "units": {"J1": "kg m^2", "J2": "kg m^2", "U21": "1", "rms_residual": "rad", "t": "s"},
-    })
+    out.update(
+        {
+            "J1": {"value": est["J1"]["value"], "std": est["J1"]["std"]},
+            "J2": {"value": est["J2"]["value"], "std": est["J2"]["std"]},
+            "U21": {"t": ts, "value": u, "std": us},
+            "relative_std": rel,
+            "U21_knots": {"t": knots, "value": est["U21"]["value"], "std": est["U21"]["std"]},
+            "messages": list(result.identifiability.messages),
+            "data": source,
+            "units": {"J1": "kg m^2", "J2": "kg m^2", "U21": "1", "rms_residual": "rad", "t": "s"},
+        }
+    )
     if out["status"] == "fitted" and not all(np.all(np.isfinite(np.asarray(x, dtype=float))) for x in (u, us)):
         out["status"], out["ok"] = "non_finite", False
     return json_safe(out)
