@@ -31,6 +31,10 @@ def clean_jax_cache_config():
         jax.config.jax_persistent_cache_min_compile_time_secs,
         _cache._active,
     )
+    # start from JAX's defaults, whatever `import jaxnh` configured for this session
+    jax.config.update("jax_compilation_cache_dir", None)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+    _cache._active = None
     yield
     jax.config.update("jax_compilation_cache_dir", before[0])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
