@@ -16,10 +16,16 @@ the batch is done; finished members are frozen) and forward-mode `jax.jvp`
 sizes are not differentiated, as in diffrax). Reverse mode is not supported:
 use `diffrax.diffeqsolve` for that.
 
-With the same tableau, tolerances and controller it takes the same steps as
-`diffrax.diffeqsolve` with `jaxnh.solvers.Tsit5`/`DOP853` and
-`diffrax.PIDController(rtol, atol)` (same initial step selection, same
-acceptance test and step-size update), so the two agree to rounding.
+With the same tableau, tolerances, controller and first step it takes the same
+steps as `diffrax.diffeqsolve` with `jaxnh.solvers.Tsit5`/`DOP853`,
+`diffrax.PIDController(rtol, atol)` and `SaveAt(ts=...)` (same acceptance test
+and step-size update), so the two agree to rounding, when `report="interpolate"`
+and no step would hold more than 2 report times (tests/test_lean.py checks it).
+Two differences: with `dt0=None` this loop selects the first step by Hairer's
+algorithm (diffrax 0.7.2 has the same code, but it never runs for
+`diffeqsolve`'s wrapped terms, which start at dt0 = 0.01: pass `dt0=0.01` to
+reproduce diffrax's steps), and the default `report="step"` lands a step on
+every report time (measured faster; see `lean_solve`).
 """
 
 from __future__ import annotations
