@@ -6,7 +6,9 @@ Builds the bicycle from its four rigid bodies (`jaxnh.models.bicycle`),
 linearises upright running at 0–10 m/s by automatic differentiation, prints
 M, C1, K0, K2, the eigenvalues at 0 and 5 m/s and the weave and capsize
 speeds next to the published ones, and simulates the nonlinear bicycle after
-a roll-rate kick at 5 m/s (self-stable) and 2 m/s (it falls). Figures:
+a roll-rate kick at 5 m/s (self-stable) and 2 m/s (it falls: a `diffrax.Event`
+stops the run when the lean passes 45°, and the event time is checked against a
+root of the dense output). Figures:
 bicycle_eigenvalues.png, bicycle_nonlinear.png.
 """
 
@@ -16,6 +18,7 @@ from pathlib import Path
 
 import diffrax
 import jax.numpy as jnp
+import optimistix as optx
 import matplotlib
 
 matplotlib.use("Agg")
@@ -64,22 +67,45 @@ fig.savefig(out / "bicycle_eigenvalues.png", dpi=120)
 # --- nonlinear: a roll-rate kick at 5 m/s and at 2 m/s -----------------------------------
 system = bicycle.system()                           # 8 coordinates, pitch dependent
 mech = bicycle.mechanism("lagrange")                # front contact as ġ = 0, multipliers
+FALLEN = np.pi / 4                                  # stop the run when the lean passes 45°
+
+
+def fallen(t, y, params, **kwargs):
+    """Event condition: zero when |roll| reaches 45° (y = (q, qd) of the mechanism)."""
+    q, _ = y
+    return jnp.abs(q[bicycle.ROLL]) - FALLEN
+
+
+event = diffrax.Event(fallen, root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
 fig, ax = plt.subplots(figsize=(7, 4.5))
-for v0, T, colour in ((5.0, 5.0, "tab:green"), (2.0, 1.6, "tab:red")):
+for v0, T, colour in ((5.0, 5.0, "tab:green"), (2.0, 4.0, "tab:red")):
     q, qd = bicycle.upright(v0, p)
     q0, qd0 = system.initial_state(q, qd.at[bicycle.ROLL].set(0.5), 0.0, p)
     ts = jnp.linspace(0.0, T, 201)
     t0 = time.perf_counter()
     # diffrax's Dopri8 loops over its stages, so this large vector field is compiled once;
-    # the default at rtol < 1e-9 (jaxnh's DOP853, stages unrolled) compiles it 12 times (minutes)
-    sol = nh.simulate(mech, p, q0, qd0, ts, method="lagrange", independent=bicycle.INDEPENDENT,
-                      rtol=1e-10, atol=1e-12, solver=diffrax.Dopri8(), record=("energy",))
+    # dense output and the event need diffrax's adjoint (chosen automatically)
+    sol = nh.simulate(mech, p, q0, qd0, ts, method="lagrange", rtol=1e-10, atol=1e-12, solver=diffrax.Dopri8(),
+                      record=("energy",), event=event, saveat=diffrax.SaveAt(ts=ts, t1=True, dense=True))
+    reached = np.isfinite(np.asarray(sol.ts))
+    t_end = float(sol.ts[-1])
     print(f"v = {v0} m/s: {int(sol.stats['num_steps'])} steps, {time.perf_counter() - t0:.1f} s, "
-          f"energy drift {float(np.ptp(np.asarray(sol.energy))):.1e} J, final roll {float(sol.q[-1, bicycle.ROLL]):+.4f} rad")
-    ax.plot(ts, sol.q[:, bicycle.ROLL], color=colour, label=f"roll, v = {v0} m/s")
-    ax.plot(ts, sol.q[:, bicycle.STEER], "--", color=colour, label=f"steer, v = {v0} m/s")
+          f"energy drift {float(np.ptp(np.asarray(sol.energy)[reached])):.1e} J, "
+          f"final roll {float(sol.q[-1, bicycle.ROLL]):+.4f} rad at t = {t_end:.6f} s")
+    if bool(np.any(np.asarray(sol.event_mask))):
+        # the event time against a root of the dense output, by bisection on |roll(t)| − 45°
+        lo, hi = t_end - 0.05, min(t_end + 0.05, T)
+        g = lambda t: abs(float(sol.evaluate(t)[0][bicycle.ROLL])) - FALLEN  # noqa: E731
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if g(mid) < 0 else (lo, mid)
+        print(f"  fell past 45° at t = {t_end:.10f} s (event); dense-output root {0.5 * (lo + hi):.10f} s, "
+              f"|Δ| = {abs(t_end - 0.5 * (lo + hi)):.1e} s")
+    ax.plot(ts[reached[:-1]], sol.q[:-1][reached[:-1], bicycle.ROLL], color=colour, label=f"roll, v = {v0} m/s")
+    ax.plot(ts[reached[:-1]], sol.q[:-1][reached[:-1], bicycle.STEER], "--", color=colour, label=f"steer, v = {v0} m/s")
+ax.axhline(FALLEN, color="gray", lw=0.5)
 ax.set(xlabel="time (s)", ylabel="angle (rad)", ylim=(-0.6, 1.0),
-       title="Nonlinear Whipple bicycle after a 0.5 rad/s roll-rate kick")
+       title="Nonlinear Whipple bicycle after a 0.5 rad/s roll-rate kick (stopped at 45° lean)")
 ax.legend()
 fig.tight_layout()
 fig.savefig(out / "bicycle_nonlinear.png", dpi=120)

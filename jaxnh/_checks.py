@@ -102,3 +102,46 @@ def diagnose_stall(form, y, t, params, status):
         ratio = partition_quality(form.mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
         status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
     return status
+
+
+STIFF_ABOVE = 1.5
+"""Step × spectral radius above which a solve by an explicit method counts as stiff.
+
+An explicit Runge–Kutta method is stable for h·|λ| up to about 3.3 (Tsit5,
+Dopri5) or 6 (8th-order pairs) along the negative real axis; steps chosen for
+accuracy on a non-stiff problem give h·ρ well below 1 at the tolerances used
+here. A solve whose typical step times the Jacobian's spectral radius is
+above 1.5 has been held back by stability: its values are still accurate
+(the error control sees to that) but its derivative through the steps, in
+reverse mode, is not (measured: damping 300/s on the variator, −5.6e93
+against −6.0e-6)."""
+
+
+def spectral_radius(form, y, t, params, iterations: int = 12):
+    """An estimate of the spectral radius of ∂f/∂y (1/s) at a state, by power iteration
+    with Jacobian-vector products (no matrix formed, runs on any device)."""
+    import jax.flatten_util
+
+    z, unravel = jax.flatten_util.ravel_pytree(y)
+
+    def f(z_):
+        return jax.flatten_util.ravel_pytree(form.vector_field(t, unravel(z_), params))[0]
+
+    _, jvp = jax.linearize(f, z)
+    v = jnp.ones_like(z) / jnp.sqrt(z.size) + 0.01 * jnp.arange(z.size, dtype=z.dtype) / z.size
+
+    def body(_, carry):
+        v, _ = carry
+        w = jvp(v)
+        n = jnp.linalg.norm(w)
+        return w / jnp.where(n > 0, n, 1.0), n
+
+    # two steps per iteration, so complex pairs (oscillations) converge in modulus too
+    def body2(i, carry):
+        v, _ = carry
+        w = jvp(jvp(v))
+        n = jnp.linalg.norm(w)
+        return w / jnp.where(n > 0, n, 1.0), jnp.sqrt(n)
+
+    _, rho = jax.lax.fori_loop(0, iterations, body2, (v, jnp.zeros((), z.dtype)))
+    return rho

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import diagnose_stall, initial_checks
+from ._checks import STIFF_ABOVE, diagnose_stall, initial_checks, spectral_radius
 from ._mechanism import Mechanism
 from ._sensitivity import ForwardSensitivity, LeanIntegrator, choose_adjoint, diffrax_solve, lean_compatible
 from ._solution import DenseMotion, Solution
@@ -251,23 +251,34 @@ def simulate(
     if baumgarte_rate is not None:
         form = Lagrange(baumgarte=baumgarte_rate)
     record = _record(record, form)
-    q0 = as_float(q0)
-    qd0 = jnp.asarray(qd0, dtype=q0.dtype)
-    ts = jnp.asarray(ts, dtype=q0.dtype)
+    q0 = q0 if _is_float_jax_array(q0) else as_float(q0)
+    qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
+    ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}")
+    if q0.dtype not in (jnp.float32, jnp.float64):
+        raise ValueError(f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays")
+    if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
+        raise TypeError(
+            f"solver must be a diffrax solver object, e.g. diffrax.Tsit5() or jaxnh.solvers.Tsit5(), or None for "
+            f"the default; got {solver!r}"
+        )
+    if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
     eps = float(np.finfo(q0.dtype).eps)
     if not (rtol >= 10 * eps) or not (atol >= 0):
         raise ValueError(
             f"rtol={rtol!r}, atol={atol!r}: rtol must be a number ≥ {10 * eps:.1g} (10 × machine epsilon of "
             f"{q0.dtype}) and atol ≥ 0" + (" — or use float64 inputs" if q0.dtype == jnp.float32 else "")
         )
-    if q0.dtype not in (jnp.float32, jnp.float64):
-        raise ValueError(f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays")
     if stepsize_controller is None:
-        stepsize_controller = diffrax.PIDController(
-            rtol=rtol, atol=atol, dtmax=dtmax, step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
-        )
+        if dtmax is None and step_ts is None and _hashable(rtol) and _hashable(atol):
+            stepsize_controller = _pid(rtol, atol)
+        else:
+            stepsize_controller = diffrax.PIDController(
+                rtol=rtol, atol=atol, dtmax=dtmax,
+                step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
+            )
     if dt0 is not None and not is_traced(dt0) and not float(dt0) > 0:
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     traced = is_traced(params, q0, qd0, ts, form)
@@ -285,6 +296,19 @@ def simulate(
                 err = type(err)(f"{err}\nDetails: {detail}", sol.status)
         raise err
     return sol
+
+
+@functools.lru_cache(maxsize=64)
+def _pid(rtol, atol):
+    return diffrax.PIDController(rtol=rtol, atol=atol)
+
+
+def _is_jax_array(x, dtype) -> bool:
+    return isinstance(x, jax.Array) and x.dtype == dtype
+
+
+def _is_float_jax_array(x) -> bool:
+    return isinstance(x, jax.Array) and x.dtype in (jnp.float32, jnp.float64)
 
 
 def _check_ts(ts):
@@ -412,6 +436,12 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
     if diagnose:
         result = diagnose_stall(form, y_end, t_end, params, result)
+    if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
+        # derivatives through the steps of an explicit method held back by stability are wrong:
+        # say so (forward sensitivities in the error control are right, and need no check)
+        ratio = _stiffness(form, ys, out_ts, params, stats, t0r)
+        stats["stiffness"] = ratio
+        result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
     status = STATUS.where(checked, result, check_status)
     status = STATUS.where(increasing, status, STATUS.bad_report_times)
     status = STATUS.where(finite, status, STATUS.non_finite_input)
@@ -437,6 +467,26 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )
+
+
+def _explicit(solver) -> bool:
+    inner = getattr(solver, "solver", solver)
+    return not isinstance(inner, diffrax.AbstractImplicitSolver)
+
+
+def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
+    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states."""
+    n = ts.shape[0]
+    idx = jnp.unique(jnp.linspace(0, n - 1, min(samples, n)).astype(jnp.int32), size=min(samples, n))
+    sub = jax.tree_util.tree_map(lambda x: x[idx], ys)
+    tsub = ts[idx]
+    ok = jnp.isfinite(tsub)
+    rho = jax.vmap(lambda y, t: spectral_radius(form, y, t, params))(
+        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0))
+    rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)
+    t_last = jnp.max(jnp.where(jnp.isfinite(ts), ts, t0))
+    h = (t_last - t0) / jnp.maximum(stats["num_accepted_steps"], 1)
+    return jnp.nan_to_num(h * jnp.nanmedian(rho))
 
 
 def _bcast(mask, x):
