@@ -1,11 +1,12 @@
 """Design an identification experiment, run it (simulated), fit it, and check the prediction.
 
-Run:  python examples/design_experiment.py [--starts 2] [--steps 200]
+Run:  python examples/design_experiment.py [--starts 1] [--steps 400]
 
 1. The embedded record's experiment (6 s at 250 Hz, two quantised encoders,
    motor torque M1(t), load torque M2(t)) predicts, before any data, the
    standard errors a fit of J1, J2 and the U21(t) spline will have.
-2. `optimal_design` chooses new torques M1(t), M2(t) — Fourier series bounded
+2. `optimal_design` chooses new torques M1(t), M2(t) — Fourier series (12
+   harmonics over the record) bounded
    by the record's largest |M1| and |M2| — that minimise the predicted
    variance of J1 while the contact force (the constraint multiplier,
    N·m) stays within the largest |λ| of the embedded experiment and J2 and
@@ -47,8 +48,8 @@ def _maker():
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--starts", type=int, default=2)
-    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--starts", type=int, default=1)
+    ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--seed", type=int, default=7, help="seed of the simulated measurement")
     args = ap.parse_args(argv)
 
@@ -66,15 +67,17 @@ def main(argv=None):
     # 2. design M1, M2: minimise var(J1); keep J2 and the knots; contact force within the record's
     rng = np.random.default_rng(0)
 
-    def law(bound):
-        return Bounded(Fourier(0.0, cos=0.5 * rng.standard_normal(8), sin=0.5 * rng.standard_normal(8),
-                               period=float(t[-1] - t[0])), -bound, bound)
+    def law(bound, mean, K=12):
+        # start near the record's mean torque with small random harmonics (as `jaxnh design` does)
+        return Bounded(Fourier(float(Bounded.inverse(mean, -bound, bound)), cos=0.3 * rng.standard_normal(K),
+                               sin=0.3 * rng.standard_normal(K), period=float(t[-1] - t[0])), -bound, bound)
 
-    start = V.VariatorParams(params.J1, params.J2, params.U21, law(m1_max), law(m2_max))
+    start = V.VariatorParams(params.J1, params.J2, params.U21, law(m1_max, np.mean(params.M1.values)),
+                             law(m2_max, np.mean(params.M2.values)))
     keep = {lab: float(s / v) for lab, s, v in zip(exp.labels[1:P], base.std[1:P], base.values[1:P])}
     res = optimal_design(exp, start, ("M1", "M2"), "A", of=("J1",),
                          limits=Limits(multiplier=lam_max, std=keep), starts=args.starts, steps=args.steps,
-                         progress=True)
+                         spread=0.3, progress=True)
     tj = jnp.asarray(t)
     m1 = np.asarray(jax.vmap(res.params.M1)(tj))
     m2 = np.asarray(jax.vmap(res.params.M2)(tj))
