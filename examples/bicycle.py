@@ -87,11 +87,11 @@ for v0, T, colour in ((5.0, 5.0, "tab:green"), (2.0, 4.0, "tab:red")):
     # dense output and the event need diffrax's adjoint (chosen automatically)
     sol = nh.simulate(mech, p, q0, qd0, ts, method="lagrange", rtol=1e-10, atol=1e-12, solver=diffrax.Dopri8(),
                       record=("energy",), event=event, saveat=diffrax.SaveAt(ts=ts, t1=True, dense=True))
-    reached = np.isfinite(np.asarray(sol.ts))
-    t_end = float(sol.ts[-1])
+    reached = np.isfinite(np.asarray(sol.ts))  # after an event: the report times reached, then the event time
+    t_end = float(np.max(np.asarray(sol.ts)[reached]))
     print(f"v = {v0} m/s: {int(sol.stats['num_steps'])} steps, {time.perf_counter() - t0:.1f} s, "
           f"energy drift {float(np.ptp(np.asarray(sol.energy)[reached])):.1e} J, "
-          f"final roll {float(sol.q[-1, bicycle.ROLL]):+.4f} rad at t = {t_end:.6f} s")
+          f"final roll {float(np.asarray(sol.q)[reached][-1, bicycle.ROLL]):+.4f} rad at t = {t_end:.6f} s")
     if bool(np.any(np.asarray(sol.event_mask))):
         # the event time against a root of the dense output, by bisection on |roll(t)| − 45°
         lo, hi = t_end - 0.05, min(t_end + 0.05, T)
@@ -101,8 +101,9 @@ for v0, T, colour in ((5.0, 5.0, "tab:green"), (2.0, 4.0, "tab:red")):
             lo, hi = (mid, hi) if g(mid) < 0 else (lo, mid)
         print(f"  fell past 45° at t = {t_end:.10f} s (event); dense-output root {0.5 * (lo + hi):.10f} s, "
               f"|Δ| = {abs(t_end - 0.5 * (lo + hi)):.1e} s")
-    ax.plot(ts[reached[:-1]], sol.q[:-1][reached[:-1], bicycle.ROLL], color=colour, label=f"roll, v = {v0} m/s")
-    ax.plot(ts[reached[:-1]], sol.q[:-1][reached[:-1], bicycle.STEER], "--", color=colour, label=f"steer, v = {v0} m/s")
+    t_plot, q_plot = np.asarray(sol.ts)[reached], np.asarray(sol.q)[reached]
+    ax.plot(t_plot, q_plot[:, bicycle.ROLL], color=colour, label=f"roll, v = {v0} m/s")
+    ax.plot(t_plot, q_plot[:, bicycle.STEER], "--", color=colour, label=f"steer, v = {v0} m/s")
 ax.axhline(FALLEN, color="gray", lw=0.5)
 ax.set(xlabel="time (s)", ylabel="angle (rad)", ylim=(-0.6, 1.0),
        title="Nonlinear Whipple bicycle after a 0.5 rad/s roll-rate kick (stopped at 45° lean)")

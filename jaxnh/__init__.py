@@ -42,6 +42,7 @@ from .equations import (  # noqa: E402
 )
 from . import design, equations, identify, solvers  # noqa: E402
 from .identify import FitResult, Record, fit  # noqa: E402
+from .identify.spec import FitSpec  # noqa: E402
 from ._sweep import sweep  # noqa: E402
 
 __version__ = "0.1.0"
@@ -53,6 +54,6 @@ __all__ = [
     "RECORDABLE", "STABILIZATIONS", "default_solver",
     "ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "choose_adjoint", "StepMaps", "MappedSolver",
     "accelerations", "consistent_velocities", "choose_independent", "linearize", "Linearization",
-    "fit", "FitResult", "Record", "sweep",
+    "fit", "FitResult", "FitSpec", "Record", "sweep",
     "design", "equations", "identify", "solvers", "models", "profiles", "rigid", "linalg",
 ]

@@ -173,15 +173,16 @@ class LeanIntegrator(eqx.Module):
 
         sol = lean_solve(f, z0, args, ts, method=self.method, rtol=controller.rtol, atol=controller.atol,
                          max_steps=max_steps, dt0=dt0, norm=norm, pre_step=pre, post_step=post, report=self.report)
-        zs = jnp.concatenate([sol.ys, sol.y_final[None]], axis=0)
-        out_ts = jnp.concatenate([ts, sol.t_final[None].astype(ts.dtype)])
+        # the layout of SaveAt(subs=[SubSaveAt(ts=ts), SubSaveAt(t1=True)])
+        zs = [sol.ys, sol.y_final[None]]
+        out_ts = [ts, sol.t_final[None].astype(ts.dtype)]
         result = diffrax.RESULTS.where(
             sol.status == 0, diffrax.RESULTS.successful,
             diffrax.RESULTS.where(sol.status == 1, diffrax.RESULTS.max_steps_reached, diffrax.RESULTS.dt_min_reached),
         )
         stats = dict(sol.stats)
         stats["max_steps"] = max_steps
-        return out_ts, jax.vmap(unravel)(zs), result, stats
+        return out_ts, [jax.vmap(unravel)(z) for z in zs], result, stats
 
 
 def lean_compatible(controller) -> bool:
@@ -200,7 +201,10 @@ def _plain(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, 
         if norm is None:
             mask = _flat_mask(error_mask, y0)
             norm = lambda e: _masked_rms(e, mask.astype(e.dtype))  # noqa: E731
-        return integrator(vector_field, maps, y0, args, saveat.subs.ts, controller, max_steps=max_steps, dt0=dt0,
+        subs = saveat.subs
+        if not (isinstance(subs, list) and len(subs) == 2 and subs[1].t1 and subs[0].ts is not None):
+            raise ValueError("the lean loop saves as SaveAt(subs=[SubSaveAt(ts=ts), SubSaveAt(t1=True)]) only")
+        return integrator(vector_field, maps, y0, args, subs[0].ts, controller, max_steps=max_steps, dt0=dt0,
                           norm=norm)
     if norm is not None:
         controller = eqx.tree_at(lambda c: c.norm, controller, norm)
@@ -285,7 +289,11 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
     ts, zs, result, stats = _plain((p_diff, E), z0, controller, t0, t1, saveat, vector_field=augmented,
                                    solver=solver, maps=z_maps, max_steps=max_steps, dt0=dt0, error_mask=None,
                                    integrator=integrator, norm=norm)
-    ys, Ss = jax.vmap(unravel)(zs)
+    if isinstance(zs, list):  # several SubSaveAts
+        ys, Ss = zip(*[jax.vmap(unravel)(z) for z in zs])
+        ys, Ss = list(ys), list(Ss)
+    else:
+        ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]
     parts += [jnp.ravel(t).astype(dtype) for t in jtu.tree_leaves(tp_diff)]

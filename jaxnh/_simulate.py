@@ -388,8 +388,8 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         if lean:  # the lean loop: same tableaus, none of diffeqsolve's machinery
             integrator = LeanIntegrator("dop853" if rtol < DOP853_BELOW_RTOL else "tsit5")
     diagnose = saveat is None  # with the default saving, keep the last state reached for a failure's diagnosis
-    if diagnose:
-        saveat = diffrax.SaveAt(ts=tsr, t1=True)
+    if diagnose:  # reports at ts, and separately the state at the end (or where a failed solve stopped)
+        saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=tsr), diffrax.SubSaveAt(t1=True)])
     dense = bool(saveat.dense)
     if event is not None:
         event = diffrax.Event(jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
@@ -415,8 +415,8 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     if out_ts is None or ys is None:
         raise ValueError("saveat must save at some times (ts=..., t1=True or steps=True) for simulate to report them")
     if diagnose:
-        t_end, y_end = out_ts[-1], jax.tree_util.tree_map(lambda x: x[-1], ys)
-        out_ts, ys = out_ts[:-1], jax.tree_util.tree_map(lambda x: x[:-1], ys)
+        t_end, y_end = out_ts[1][-1], jax.tree_util.tree_map(lambda x: x[-1], ys[1])
+        out_ts, ys = out_ts[0], ys[0]
     q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, out_ts)
     out = {}
     if "multipliers" in record:

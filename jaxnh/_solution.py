@@ -87,8 +87,7 @@ class Solution(eqx.Module):
     @property
     def messages(self) -> list:
         """One message per batch member ("success" or why it failed), for batched solutions."""
-        codes = np.asarray(self.status._value).ravel()
-        return [describe(STATUS.where(True, _item(int(c)), STATUS.successful)) for c in codes]
+        return [describe(int(c)) for c in np.asarray(self.status._value).ravel()]
 
     @property
     def message(self) -> str:
@@ -99,7 +98,7 @@ class Solution(eqx.Module):
         if np.all(codes == int(STATUS.successful._value)):
             return f"success ({codes.size} of {codes.size})"
         values, counts = np.unique(codes, return_counts=True)
-        parts = [f"{n} × {describe(STATUS.where(True, _item(int(v)), STATUS.successful))}" for v, n in zip(values, counts)]
+        parts = [f"{n} × {describe(int(v))}" for v, n in zip(values, counts)]
         return f"{codes.size - int(np.sum(codes == int(STATUS.successful._value)))} of {codes.size} failed: " + "; ".join(parts)
 
     def to_dataframe(self):
@@ -109,13 +108,3 @@ class Solution(eqx.Module):
         return solution_to_dataframe(self)
 
 
-def _item(code: int):
-    for name in STATUS._name_to_item:
-        item = STATUS._name_to_item[name]
-        if int(item._value) == code:
-            return item
-    raise ValueError(f"unknown status code {code}")
-
-
-def stack_leaves(tree):
-    return jax.tree_util.tree_map(jnp.asarray, tree)

@@ -37,7 +37,7 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     inconsistent_velocities = (
         "qd0 violates the nonholonomic constraints by more than √eps relative to the velocity "
-        "scale |A|·|qd0| + |c(q0, 0, t0)|. Use jaxnh.consistent_velocities(mech, q0, qd0, t0, "
+        "scale ‖A_k‖·‖qd0‖ + |c_k(q0, 0, t0)| of each constraint k. Use jaxnh.consistent_velocities(mech, q0, qd0, t0, "
         "params) to project qd0 onto the constraints."
     )
     velocity_free_constraint = (
@@ -108,11 +108,11 @@ def error_for(status) -> SimulationError:
 
 
 def describe(status) -> str:
-    """'success', or the failure in words, for a concrete (unbatched) status."""
-    code = int(np.asarray(status._value))
+    """'success', or the failure in words, for a concrete (unbatched) status or its integer code."""
+    code = int(np.asarray(getattr(status, "_value", status)))
     if code == int(STATUS.successful._value):
         return "success"
-    msg = f"solve failed: {STATUS[STATUS._from_index(code) if hasattr(STATUS, '_from_index') else status]}"
+    msg = f"solve failed: {STATUS._index_to_message[code]}"
     if code in (int(STATUS.max_steps_reached._value), int(STATUS.max_steps_rejected._value)):
         msg += MAX_STEPS_ADVICE
     if code == int(STATUS.singular._value):

@@ -1,6 +1,7 @@
-"""The `jaxnh` command line: `jaxnh demo`, `jaxnh fit`.
+"""The `jaxnh` command line: `jaxnh demo`, `jaxnh fit`, `jaxnh design`.
 
     jaxnh demo [--out DIR] [--no-fit]
+    jaxnh design [--out DIR] ...   (`jaxnh.identify._design_cli`)
     jaxnh fit [DATA.csv] [--model variator | module:function] [--json OUT.json] [--out DIR] ...
 
 `jaxnh fit --help` describes the fit's options, the CSV format and the
@@ -46,6 +47,12 @@ def _use_agg() -> None:
 
 def main(argv=None) -> int:
     """Run `jaxnh` with `argv` (default: sys.argv[1:]); returns the exit status (0, 1 or 2)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["design"]:  # its own parser and options (`jaxnh design --help`)
+        from .identify._design_cli import main as design_main
+
+        _use_agg()
+        return design_main(argv[1:])
     parser = argparse.ArgumentParser(
         prog="jaxnh",
         description="Mechanisms with nonholonomic constraints in JAX",
@@ -61,6 +68,8 @@ def main(argv=None) -> int:
     )
     demo.add_argument("--out", default="jaxnh_out", help="folder for the figures and fit.json (default: jaxnh_out)")
     demo.add_argument("--no-fit", action="store_true", help="skip the parameter fit")
+    sub.add_parser("design", help="design the identification experiment (inputs) before measuring; "
+                   "`jaxnh design --help` for its options", add_help=False)
     from .identify.cli import add_fit_parser, run_fit
 
     add_fit_parser(sub)

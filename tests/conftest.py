@@ -1,8 +1,6 @@
-"""Test-session settings shared by every test module."""
+"""Test-session settings shared by every test module.
 
-import os
-
-# The command line turns on JAX's persistent compilation cache (jaxnh.cli.use_compilation_cache);
-# tests that call jaxnh.cli.main in-process must not switch it on for the rest of the session
-# or write to the user's cache folder.
-os.environ.setdefault("JAXNH_CACHE_DIR", "off")
+The suite uses JAX's persistent compilation cache like any jaxnh user (in
+`~/.cache/jaxnh`, or `$JAXNH_CACHE_DIR`): a second run of the suite loads its
+compiled programs instead of compiling them again.
+"""
