@@ -84,13 +84,19 @@ def initial_checks(form, q, qd, t, params):
     return ok, status
 
 
-def diagnose_stall(form, y, t, params, status):
+def _mass_diagonal(mech, q, qd, t, params):
+    return jnp.diag(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
+
+
+def diagnose_stall(form, y, t, params, status, start=None):
     """The status of a failed solve, refined by what is wrong at the last state reached.
 
     A solve that stalls (step limit, step size collapse) where the equations
     themselves break down says so: a mass matrix that is no longer positive
-    definite, or (Appell's equations with a fixed partition) a dependent block
-    that has become singular.
+    definite, or whose diagonal (an inertia) has fallen below √eps of its value
+    at the start `start = (q0, qd0, t0)` (the step before the breakdown), or
+    (Appell's equations with a fixed partition) a dependent block that has
+    become singular.
     """
     from .equations.appell import Appell
     from .equations.split import partition_quality
@@ -101,6 +107,11 @@ def diagnose_stall(form, y, t, params, status):
     q = jnp.where(finite, q, 0.0)
     qd = jnp.where(finite, qd, 0.0)
     pd = mass_matrix_ok(form.mech, q, qd, t, params)
+    if start is not None:
+        d0 = _mass_diagonal(form.mech, *start, params)
+        d1 = _mass_diagonal(form.mech, q, qd, t, params)
+        collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
+        pd = pd & ~collapsed
     status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
     if isinstance(form, Appell) and form.m:
         ratio = partition_quality(form.mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]

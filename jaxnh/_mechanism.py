@@ -193,8 +193,8 @@ class Mechanism(eqx.Module):
             m += g.shape[0]
         if m > s:
             raise ValueError(
-                f"Mechanism: m={m} constraints (nonholonomic plus holonomic) but there are only s={s} coordinates; "
-                "expected m ≤ s"
+                f"Mechanism: m={m} constraints but there are only s={s} coordinates (nonholonomic and holonomic "
+                "constraints together); expected m ≤ s"
             )
         if self.forces is not None:
             Q = out(self.forces, "forces", q, qd, t, params)

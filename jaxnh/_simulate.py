@@ -338,13 +338,28 @@ def _all_finite(tree):
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
 
 
-def _nan_gradients(bad, tree):
-    """A term that is 0 (value and derivative) when `bad` is False and NaN in every
-    derivative when it is True: added to outputs so that a failed solve or
-    non-finite input never gives a clean-looking gradient."""
-    leaves = [x for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
-    total = sum((jnp.sum(x - jax.lax.stop_gradient(x)) for x in leaves), jnp.zeros(()))
-    return jnp.where(bad, jnp.nan, 0.0) * total
+@jax.custom_jvp
+def _nan_link(bad, total):
+    """0, whose derivative with respect to `total` is NaN when `bad` is True (else 0).
+
+    Added to every output with `total` a sum over the inputs: a failed solve or
+    non-finite input then has NaN derivatives with respect to every input, in
+    forward and reverse mode, while its values are left as they are (a mask
+    on the outputs alone would hide the NaN from reverse mode).
+    """
+    return jnp.zeros_like(total)
+
+
+@_nan_link.defjvp
+def _nan_link_jvp(primals, tangents):
+    bad, total = primals
+    _, dtotal = tangents
+    return jnp.zeros_like(total), dtotal * jnp.where(bad, jnp.nan, 0.0).astype(total.dtype)
+
+
+def _input_sum(tree):
+    leaves = [jnp.sum(x) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
+    return sum(leaves[1:], leaves[0]) if leaves else jnp.zeros(())
 
 
 class _UserEvent(eqx.Module):
@@ -435,7 +450,7 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     if isinstance(form, Appell):
         result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
     if diagnose:
-        result = diagnose_stall(form, y_end, t_end, params, result)
+        result = diagnose_stall(form, y_end, t_end, params, result, start=(q0r, qd0r, t0r))
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check)
@@ -451,11 +466,11 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     )
     status = STATUS.where(bad_output, STATUS.non_finite_output, status)
     failed = status != STATUS.successful
-    poison = _nan_gradients(failed, (params, q0, qd0, form))
     nan_all = ~ok
+    link = _nan_link(failed, _input_sum((params, q0, qd0, form)))
 
     def finish(x):
-        return jnp.where(nan_all, jnp.nan, x) + poison.astype(x.dtype)
+        return jnp.where(nan_all, jnp.nan, x) + link.astype(x.dtype)
 
     q, qd = finish(q), finish(qd)
     out = {k: finish(v) for k, v in out.items()}

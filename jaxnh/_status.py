@@ -57,9 +57,11 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "run, or use method='lagrange' (which accepts redundant constraints)."
     )
     mass_matrix_became_singular = (
-        "The solve stalled where the mass matrix ∂²T/∂qd² is no longer positive definite (singular "
-        "or indefinite at the last state reached): the equations of motion break down there. Check "
-        "the kinetic energy and the parameters along the motion."
+        "The solve stalled at a singular mass matrix: ∂²T/∂qd² at the last state reached is no "
+        "longer positive definite, or an inertia on its diagonal has fallen to ~0 (below √eps of "
+        "its initial value); the equations of motion break down there. Check the kinetic energy "
+        "and the parameters along the motion; Appell's equations only need the reduced inertia "
+        "Bᵀ M B to stay positive definite."
     )
     non_finite_output = (
         "The solve finished but a reported value (coordinates, velocities, multipliers, energy "

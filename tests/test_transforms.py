@@ -185,7 +185,7 @@ def test_every_check_gives_the_same_status_eagerly_under_jit_and_vmap(check_outc
         expected = getattr(nh.STATUS, name)
         assert eager[i].status == expected, (name, eager[i].message)
         assert jit[i].status == expected, name
-        assert batch.status[i] == expected, name
+        assert int(batch.status._value[i]) == int(expected._value), name
         assert eager[i].message == jit[i].message == messages[i], name
         if name != "successful":
             assert bool(jnp.all(jnp.isnan(eager[i].q))), name  # never a plausible answer
