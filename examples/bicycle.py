@@ -105,8 +105,8 @@ for v0, T, colour in ((5.0, 5.0, "tab:green"), (2.0, 4.0, "tab:red")):
     ax.plot(t_plot, q_plot[:, bicycle.ROLL], color=colour, label=f"roll, v = {v0} m/s")
     ax.plot(t_plot, q_plot[:, bicycle.STEER], "--", color=colour, label=f"steer, v = {v0} m/s")
 ax.axhline(FALLEN, color="gray", lw=0.5)
-ax.set(xlabel="time (s)", ylabel="angle (rad)", ylim=(-0.6, 1.0),
-       title="Nonlinear Whipple bicycle after a 0.5 rad/s roll-rate kick (stopped at 45° lean)")
+ax.set(xlabel="time (s)", ylabel="angle (rad)",
+       title="Whipple bicycle after a 0.5 rad/s roll-rate kick (stopped at 45° lean)", ylim=(-0.6, 1.2))
 ax.legend()
 fig.tight_layout()
 fig.savefig(out / "bicycle_nonlinear.png", dpi=120)
