@@ -37,6 +37,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
+import jax.export
 import jax.lax as lax
 import jax.numpy as jnp
 

@@ -9,6 +9,7 @@ and of its dense output.
 
 import diffrax
 import jax
+import jax.export
 import jax.numpy as jnp
 import numpy as np
 import pytest
