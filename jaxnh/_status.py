@@ -131,4 +131,5 @@ def is_traced(*trees) -> bool:
 def raise_in_graph(x, status):
     """`x`, with an error raised from inside the program when `status` is a failure."""
     failed = status != STATUS.successful
-    return eqx.error_if(x, failed, status)
+    messages = [STATUS._index_to_message[i] for i in range(len(STATUS._index_to_message))]
+    return eqx.branched_error_if(x, failed, status._value, messages)

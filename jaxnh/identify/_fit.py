@@ -363,7 +363,7 @@ def _noise(noise, observe, y):
 def fit_solver(solver, params, rtol: float):
     """The ODE solver a fit uses: `solver` if given; else, when params hold
     measured inputs (`Sampled` profiles) and rtol ≥ 1e-9, `diffrax.Tsit5`;
-    else None (`simulate`'s default).
+    else `default_solver(rtol)` for a small vector field.
 
     A sampled input is a spline through samples a few ms apart, whose third
     derivative jumps at every sample, so the motion is only C⁴ there and an
@@ -381,7 +381,13 @@ def fit_solver(solver, params, rtol: float):
 
     sampled = any(isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(
         params, is_leaf=lambda x: isinstance(x, Sampled)))
-    return diffrax.Tsit5() if sampled and rtol >= DOP853_BELOW_RTOL else None
+    if sampled and rtol >= DOP853_BELOW_RTOL:
+        return diffrax.Tsit5()
+    # an explicit solver keeps fits on diffrax's loop (the lean loop steps onto every report
+    # time; the fits' measured convergence and calibration were established on diffrax's steps)
+    from .._simulate import default_solver
+
+    return default_solver(rtol, None, "appell")
 
 
 def fit(
