@@ -482,8 +482,9 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
 
     q, qd = finish(q), finish(qd)
     out = {k: finish(v) for k, v in out.items()}
-    if graph_throw:
-        q = raise_in_graph(q, status)
+    if graph_throw:  # on every output, so that whatever the caller keeps carries the check
+        q, qd = raise_in_graph(q, status), raise_in_graph(qd, status)
+        out = {k: raise_in_graph(v, status) for k, v in out.items()}
     return Solution(
         ts=out_ts, q=q, qd=qd, multipliers=out.get("multipliers"), energy=out.get("energy"),
         residual=out.get("residual"), stats=stats, status=status, names=mech.coordinate_names(s),

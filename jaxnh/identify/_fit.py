@@ -403,7 +403,7 @@ def fit(
     qd0=None,
     method: str = "appell",
     solver=None,
-    rtol="auto",
+    rtol=1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
     optimizer="levenberg-marquardt",
@@ -441,8 +441,9 @@ def fit(
             are held at q0 (default 0).
         method, solver, rtol, atol, max_steps: passed to `simulate`; with
             `solver=None` and measured inputs (`jaxnh.profiles.Sampled`) in
-            params, `diffrax.Tsit5` (see `fit_solver`). `rtol="auto"`
-            (default): the ODE tolerance follows the precision the data
+            params, `diffrax.Tsit5` (see `fit_solver`). rtol default 1e-8 (the
+            calibrated setting, benchmarks/CALIBRATION.md). `rtol="auto"`:
+            the ODE tolerance follows the precision the data
             demand — the fit starts at `AUTO_RTOL_START` (1e-8, atol as
             given) and, once fitted, measures the solver's own error against
             a solve 1000× tighter; if that error, projected on what the
