@@ -170,7 +170,10 @@ class Problem(eqx.Module):
 
     def raw_residuals(self, theta, data: Observations):
         """Weighted residuals (vector) without the custom Jacobian rule."""
-        adjoint = ForwardSensitivity() if self.differentiation == "forward" else diffrax.RecursiveCheckpointAdjoint()
+        # the Jacobian of the residuals the fit computes: the sensitivities take the primal solve's
+        # steps (no sensitivity error control), so Gauss–Newton sees the derivative of its own residual
+        adjoint = (ForwardSensitivity(error_control=False) if self.differentiation == "forward"
+                   else diffrax.RecursiveCheckpointAdjoint())
         params = self.par.unpack(theta[:self.n_params])
         obs = jnp.asarray(self.observed)
         if len(self.starts) == 1:
