@@ -401,6 +401,11 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     ok = finite & increasing & checked
     y0 = form.state(q0r, qd0r, t0r, params)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
+    if graph_throw:  # an invalid input raises before the solve: the solve depends on it, so it is never pruned
+        pre = STATUS.where(checked, STATUS.successful, check_status)
+        pre = STATUS.where(increasing, pre, STATUS.bad_report_times)
+        pre = STATUS.where(finite, pre, STATUS.non_finite_input)
+        y0 = jax.tree_util.tree_map(lambda x: raise_in_graph(x, pre), y0)
     integrator = None
     if solver is None:
         operations = vector_field_operations(form, t0, y0, params)
