@@ -1,6 +1,6 @@
 """Shared machinery of the benchmarks: solvers, compiled solves, interleaved timing, output.
 
-Timing rules (NOTES.md, SciMLBenchmarks): every JAX function is compiled ahead
+Timing rules (SciMLBenchmarks' work-precision methodology): every JAX function is compiled ahead
 of time (`jit(...).lower(...).compile()`, whose duration is the compile time
 reported), then called repeatedly; contenders are interleaved round by round so
 that load from other processes hits them alike, and times are medians over

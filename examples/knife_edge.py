@@ -5,8 +5,9 @@ Run:  python examples/knife_edge.py [OUT_DIR]     (default jaxnh_out/)
 Released at rest, spinning at ω, the blade turns uniformly and its contact
 point traces x = (g sin α/2ω²) sin² ωt, y = (g sin α/2ω²)(ωt − ½ sin 2ωt):
 it does not slide down the slope but drifts across it. Lagrange's
-equations with multipliers handle all headings; Appell's with the fixed
-split (ẋ, φ̇ independent) only until φ = π/2 (see NOTES.md). Writes
+equations with multipliers handle all headings; so does Appell's default,
+which re-chooses the independent velocities when φ nears π/2 (a fixed split
+(ẋ, φ̇ independent) would fail there with STATUS.singular_split). Writes
 knife_edge.png.
 """
 

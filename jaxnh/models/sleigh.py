@@ -18,10 +18,11 @@ which integrates in closed form (`closed_form`): with
     θ = θ0 + (ω0 cosh c / k) (gd(k t + c) − gd(c)),   gd(u) = 2 atan(tanh(u/2)).
 
 The kinetic energy is built by `jaxnh.rigid.RigidBodies` from the body's
-pose. The dependent velocity of the Appell form is ẏ (independent ẋ, θ̇),
-regular while cos θ ≠ 0: the closed form turns the sleigh by a bounded
-angle, so choose θ0 with the whole turn inside (−π/2, π/2), or use
-"lagrange" (see NOTES.md on fixed splits).
+pose. The model fixes the split (independent ẋ, θ̇): the dependent velocity
+ẏ is regular while cos θ ≠ 0, so keep the whole turn inside (−π/2, π/2)
+(a run that leaves it fails with STATUS.singular_split), or use "lagrange",
+or `jaxnh.Appell()` on a Mechanism without `independent`, which re-chooses
+the split during the run.
 
 Units: m, kg, kg·m², rad, s.
 """
