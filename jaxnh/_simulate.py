@@ -246,9 +246,11 @@ def simulate(
     Returns:
         A `Solution`.
     """
-    form = _resolve(method if isinstance(method, str) else method,
-                    None if independent is None else tuple(int(i) for i in independent),
-                    stabilization, baumgarte_rate is not None) if _hashable(method) else as_formulation(method, independent)
+    ind = None if independent is None else tuple(int(i) for i in independent)
+    if _hashable(method):  # names and array-free formulation objects: resolved once, cached
+        form = _resolve(method, ind, stabilization, baumgarte_rate is not None)
+    else:
+        form = as_formulation(method, ind)
     if baumgarte_rate is not None:
         form = Lagrange(baumgarte=baumgarte_rate)
     record = _record(record, form)
