@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._mechanism import Mechanism
-from .equations.base import as_float, as_time
+from .equations.base import as_data, as_float, as_time
 from .equations.terms import constraint_terms, mass_and_velocity_terms
 from .linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
 
@@ -52,6 +52,7 @@ def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3
     q = as_float(q)
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
+    params = as_data(params, q)
     mech.check_shapes(q, qd, t, params)
     mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))  # concrete input only
     return _project_jit(mech, q, qd, t, params, iterations)

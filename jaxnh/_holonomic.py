@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from .equations.base import as_float, as_time
+from .equations.base import as_data, as_float, as_time
 from .equations.split import VelocitySplit, choose_independent, pick
 from .linalg import solve_square
 from ._mechanism import Mechanism, check_independent
@@ -341,6 +341,7 @@ class HolonomicMechanism(eqx.Module):
         q = as_float(q)
         qd = jnp.asarray(qd, q.dtype)
         t = as_time(t, q)
+        params = as_data(params, q)
         s = q.shape[0]
         q = _restore(self, q, t, params)
         if not isinstance(q, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(q))):
@@ -359,7 +360,7 @@ class HolonomicMechanism(eqx.Module):
     def expand(self, sol, params):
         """A `Solution` of `reduced()` rewritten in all s coordinates."""
         s = sol.q.shape[-1] + len(self.dependent)
-        q, qd = _expand(self, sol.q, sol.qd, sol.ts, params)
+        q, qd = _expand(self, sol.q, sol.qd, sol.ts, as_data(params, sol.q))
         names = tuple(self.names) if self.names is not None else tuple(f"q{i}" for i in range(s))
         return type(sol)(
             ts=sol.ts, q=q, qd=qd, multipliers=sol.multipliers, energy=sol.energy, residual=sol.residual,

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .equations.base import as_float, as_time
+from .equations.base import as_data, as_float, as_time
 from ._status import is_traced
 from .equations.split import (
     VelocitySplit, best_partition, choose_independent, partition_quality, pick, resolve_independent,
@@ -143,6 +143,7 @@ def linearize(
     q = as_float(q)
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
+    params = as_data(params, q)
     m = mech.check_shapes(q, qd, t, params)  # raises, naming the argument, for wrong shapes
     # concrete input: NaN/inf or a mass matrix that is not positive definite raise here
     mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))

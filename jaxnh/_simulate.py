@@ -26,7 +26,7 @@ from ._sensitivity import ForwardSensitivity, LeanIntegrator, choose_adjoint, di
 from ._solution import DenseMotion, Solution
 from ._status import STATUS, error_for, is_traced, raise_in_graph
 from .equations import Appell, Formulation, Lagrange, as_formulation
-from .equations.base import as_float
+from .equations.base import as_data, as_float
 from .solvers import Tsit5
 
 __all__ = [
@@ -257,6 +257,7 @@ def simulate(
     q0 = q0 if _is_float_jax_array(q0) else as_float(q0)
     qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
+    params = as_data(params, q0)  # one program per structure of params, not per value
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}")
     if q0.dtype not in (jnp.float32, jnp.float64):

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 
 from .._mechanism import Mechanism
 from .appell import Appell
-from .base import Formulation, as_float, as_time, multipliers_from_accelerations
+from .base import Formulation, as_data, as_float, as_time, multipliers_from_accelerations
 from .lagrange import Lagrange
 from .split import VelocitySplit, choose_independent
 from .substituted import Substituted
@@ -87,6 +87,7 @@ def accelerations(mech: Mechanism, q, qd, t, params, method="lagrange", independ
     q = as_float(q)
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)
+    params = as_data(params, q)
     form = formulation(mech, method, q, qd, t, params, independent)
     # concrete input: non-finite values or a mass matrix that is not positive
     # definite raise here instead of returning NaN (qd need not be consistent)

@@ -164,25 +164,27 @@ class _Partitioning(StepMaps):
     def pre(self, t, y, args):
         if not self.switch:
             return y, jnp.asarray(False)
-        f, params = args[0], args[1]
+        f, params, ok = args
         q, v, code = y
         perm = f.partition(y)
         qd = f.split.velocities(q, v, t, params, perm)
         ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
-        switch = ratio < SWITCH_BELOW
+        switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
         new = jnp.where(switch, best, perm)
         v_new = jnp.where(switch, select(qd, new, f.s - f.m)[0], v)
         return (q, v_new, new.astype(code.dtype)), switch
 
     def post(self, t0, y0, t1, y1, args):
-        f, params = args[0], args[1]
+        f, params, ok = args
         part = f.partition(y1)
         det = []
         for y, t in ((y0, t0), (y1, t1)):
             # A = ∂c/∂qd does not depend on qd for linear constraints: skip the velocity solve
             qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(y[0])
             det.append(block_determinant(constraint_matrix(f.mech, y[0], qd, t, params), part, f.s - f.m))
-        crossed = (jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])
+        # after a failed initial check the state is a zero stand-in under a zero field:
+        # nothing to watch, and the solve must end at once rather than reject every step
+        crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
         if self.switch:
             return y1, None, crossed, jnp.asarray(False)
         # a fixed partition cannot be changed: passing through a singular block fails the solve

@@ -109,6 +109,19 @@ def as_float(x):
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
 
 
+def as_data(params, like):
+    """`params` with its Python `float` leaves as arrays of the floating dtype of `like`.
+
+    jaxnh compiles once per structure of the parameters, not per value: a
+    Python float would otherwise be a compile-time constant (equinox treats
+    non-array leaves as static), so every new value, e.g. in a loop over J2,
+    would compile a new program. Other leaves (arrays, ints, bools, strings,
+    callables) are left as they are.
+    """
+    dtype = jnp.result_type(like, jnp.float32)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype) if type(x) is float else x, params)
+
+
 def as_time(t, like):
     """Time as a scalar array with the floating dtype of `like`."""
     return jnp.asarray(t, dtype=jnp.result_type(like, jnp.float32))
