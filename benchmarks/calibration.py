@@ -28,11 +28,12 @@ import numpy as np
 
 import jaxnh  # noqa: F401  (64-bit mode)
 from jaxnh.identify import noise_level, solve_least_squares, statistics
+from jaxnh.identify._fit import GN_STEP_TOL, prepare
 from jaxnh.identify.data import load_default
 from jaxnh.identify.diagnostics import LACK_OF_FIT_Z, NOISE_ESTIMATE_REL_VAR
-from jaxnh.identify._fit import GN_STEP_TOL, prepare
 from jaxnh.identify.variator import FREE, params_for, ratio_knots, starting_guess
 from jaxnh.models import variator as V
+
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 Z95 = 1.959963984540054

@@ -21,9 +21,9 @@ import json
 import os
 import pathlib
 import platform
-import sys
 import time
 from typing import Callable
+
 
 # XLA on CPU runs independent operations of one program on a thread pool whose
 # idle workers spin: the process then burns CPU time waiting. Measured here: a
@@ -50,8 +50,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
-from jaxnh.equations import formulation  # noqa: E402
 from jaxnh.solvers import DOP853, Tsit5  # noqa: E402
+
 
 HERE = pathlib.Path(__file__).resolve().parent
 # Where JSON results, figures and RESULTS.md go: benchmarks/ itself (the committed record), or the

@@ -11,7 +11,10 @@ twice and reports: import time, first call, second call, and their difference
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import json

@@ -35,7 +35,10 @@ duplicated work would need control of XLA's fusion, or a hand-written step.
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import re
@@ -47,6 +50,7 @@ import jax.numpy as jnp
 from jaxnh._simulate import formulation
 
 from . import problems as PB
+
 
 # Instructions of an optimised HLO entry computation that do no work at run time.
 _FREE = {"parameter", "tuple", "get-tuple-element", "bitcast", "constant"}

@@ -24,7 +24,10 @@ mechanism) is measured alone:
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import re
@@ -38,6 +41,7 @@ from jaxnh._lean import lean_solve
 from jaxnh.equations import formulation
 
 from . import problems as PB
+
 
 _FREE = {"parameter", "tuple", "get-tuple-element", "bitcast", "constant"}
 

@@ -41,8 +41,9 @@ import numpy as np
 import jaxnh  # noqa: F401  (64-bit mode)
 from jaxnh.identify import load_default, solve_least_squares, value_and_jacobian
 from jaxnh.identify._fit import prepare
-from jaxnh.identify.variator import FREE, fit_variator, params_for, ratio_knots, starting_guess
+from jaxnh.identify.variator import fit_variator, FREE, params_for, ratio_knots, starting_guess
 from jaxnh.models import variator as V
+
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 TRUTH = os.path.join(HERE, "..", "jaxnh", "data", "variator_truth.json")

@@ -23,7 +23,10 @@ with the forward solve; the ratio is the median of per-round ratios.
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import time
@@ -32,12 +35,12 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import jaxnh as nh
-from jaxnh.models import variator as V
+from jaxnh._sensitivity import auto_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity
 from jaxnh._simulate import default_solver
-from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, auto_adjoint
+from jaxnh.models import variator as V
+
 
 RTOL, ATOL = 1e-8, 1e-10
 

@@ -36,7 +36,10 @@ diffrax also run the batch there ("GPU" rows).
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import json
@@ -57,6 +60,7 @@ from jaxnh._lean import lean_solve
 from jaxnh.models import variator as V
 
 from . import problems as PB
+
 
 TARGET_ERROR = 1e-8
 W0 = 10.0

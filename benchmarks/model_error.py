@@ -36,10 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh as nh
-from jaxnh.identify import Record, load_default
+from jaxnh.identify import load_default, Record
 from jaxnh.identify.variator import fit_variator, ratio_knots
 from jaxnh.models import variator as V
 from jaxnh.profiles import CubicSpline, Profile
+
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

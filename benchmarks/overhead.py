@@ -18,13 +18,15 @@
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxnh as nh

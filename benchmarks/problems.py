@@ -26,6 +26,7 @@ import numpy as np
 import jaxnh as nh
 from jaxnh.models import variator as V
 
+
 # --------------------------------------------------------------------------- variator
 
 

@@ -8,18 +8,29 @@ typed by hand. Run after the benchmarks (run_all does):
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import math
 import os
 
 import matplotlib
 
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxnh._simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations  # noqa: E402
+from jaxnh._simulate import (  # noqa: E402
+    default_solver,
+    DOP853_BELOW_RTOL,
+    DOPRI8_BELOW_RTOL_LOOPED,
+    UNROLL_MAX_OPERATIONS,
+    vector_field_operations,
+)
+
 
 _OPS: dict = {}
 

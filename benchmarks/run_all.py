@@ -22,6 +22,7 @@ import time
 
 from . import common as C
 
+
 OURS = ["work_precision", "overhead", "field_cost", "throughput", "gradients", "compile_time", "lean_loop",
         "field_size"]
 OTHERS = ["stability", "calibration", "sweep_bench", "bicycle_cost"]

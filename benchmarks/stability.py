@@ -34,6 +34,7 @@ from jaxnh.models import variator as V
 from jaxnh.profiles import Profile
 from jaxnh.solvers import DOP853
 
+
 HERE = pathlib.Path(__file__).resolve().parent
 FIG = HERE / "figures"
 W0 = 2.0  # rad/s

@@ -37,6 +37,7 @@ import time
 
 import numpy as np
 
+
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 T_END = 5.0
@@ -136,7 +137,6 @@ def bench_batches(sizes, loop_n, repeats, with_vmap=True):
 
 def bench_scipy(n, repeats, single):
     import jax
-    import jax.numpy as jnp
     from scipy.integrate import solve_ivp
 
     from jaxnh.models import variator

@@ -12,7 +12,10 @@ whole batch steps until its slowest member is done. Contenders: jaxnh
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import time
@@ -26,6 +29,7 @@ import jaxnh as nh
 from jaxnh.models import variator as V
 
 from . import problems as PB
+
 
 RTOL, ATOL = 1e-10, 1e-12
 

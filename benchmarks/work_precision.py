@@ -22,7 +22,10 @@ after compilation; compile time reported separately.
 
 from __future__ import annotations
 
-from . import common as C  # noqa: I001  (first: it sets XLA's flags before JAX starts)
+from . import common as C  # first: it sets XLA's flags before JAX starts
+
+
+# isort: split
 
 import argparse
 import time
@@ -31,6 +34,7 @@ import jax
 import numpy as np
 
 from . import problems as PB
+
 
 FULL_TOLS = [10.0**-k for k in range(3, 14)]
 QUICK_TOLS = [1e-4, 1e-7, 1e-10, 1e-13]

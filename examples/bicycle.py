@@ -18,8 +18,9 @@ from pathlib import Path
 
 import diffrax
 import jax.numpy as jnp
-import optimistix as optx
 import matplotlib
+import optimistix as optx
+
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -27,6 +28,7 @@ import numpy as np  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
 from jaxnh.models import bicycle  # noqa: E402
+
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "jaxnh_out")
 out.mkdir(parents=True, exist_ok=True)

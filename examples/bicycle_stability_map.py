@@ -29,8 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh  # noqa: F401  (64-bit mode)
-from jaxnh.models import bicycle
 from jaxnh._sweep import sweep
+from jaxnh.models import bicycle
+
 
 P0 = bicycle.default_params()
 CHUNK = 512

@@ -36,6 +36,7 @@ from jaxnh.identify.variator import fit_variator
 from jaxnh.models import variator as V
 from jaxnh.profiles import Bounded, Fourier, Sampled
 
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 

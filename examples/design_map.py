@@ -31,9 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh as nh
+from jaxnh._sweep import sweep
 from jaxnh.models import variator
 from jaxnh.profiles import Fourier
-from jaxnh._sweep import sweep
+
 
 MECH = variator.mechanism()
 T_END = 6.0

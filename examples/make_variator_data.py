@@ -21,6 +21,7 @@ from jaxnh.identify.data import Record, write_csv
 from jaxnh.models import variator as V
 from jaxnh.profiles import CubicSpline, Fourier
 
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 DATA = os.path.join(HERE, "..", "jaxnh", "data")
 

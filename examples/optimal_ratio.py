@@ -55,6 +55,7 @@ import jaxnh as nh
 from jaxnh.design import Bounded, Chebyshev, fd_gradient, optimize
 from jaxnh.models import variator
 
+
 MECH = variator.mechanism()
 J1, J2 = 0.02, 0.05          # kg·m²
 M1, M2 = 0.3, -0.1           # motor and load torque, N·m

@@ -15,12 +15,14 @@ from pathlib import Path
 import jax.numpy as jnp
 import matplotlib
 
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
 from jaxnh.models import sleigh  # noqa: E402
+
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "jaxnh_out")
 out.mkdir(parents=True, exist_ok=True)

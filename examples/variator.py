@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import jaxnh as nh
 from jaxnh.models import variator
 
+
 mech = variator.mechanism()                 # T, constraint U21(t) phi1' - phi2' = 0, torques
 p = variator.default_params()               # J1, J2 [kg m²], U21(t), M1, M2 [N m]
 ts = jnp.linspace(0.0, 5.0, 51)             # report times, s

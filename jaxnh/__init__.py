@@ -19,31 +19,39 @@ import os
 
 import jax
 
+
 if os.environ.get("JAXNH_X64", "1") != "0":
     jax.config.update("jax_enable_x64", True)
 
 from ._cache import setup_compilation_cache  # noqa: E402
 
+
 setup_compilation_cache()
 
-from . import linalg, models, profiles, rigid  # noqa: E402
+from . import design, equations, identify, linalg, models, profiles, rigid, solvers  # noqa: E402
 from ._consistent import consistent_velocities  # noqa: E402
 from ._holonomic import HolonomicMechanism  # noqa: E402
 from ._linearize import Linearization, linearize  # noqa: E402
 from ._mechanism import Mechanism  # noqa: E402
 from ._ode import ODE, ode  # noqa: E402
-from ._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, choose_adjoint  # noqa: E402
-from ._simulate import RECORDABLE, STABILIZATIONS, default_solver, simulate  # noqa: E402
+from ._sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
+from ._simulate import default_solver, RECORDABLE, simulate, STABILIZATIONS  # noqa: E402
 from ._solution import DenseMotion, Solution  # noqa: E402
-from ._status import STATUS, InvalidInitialState, SimulationError  # noqa: E402
+from ._status import InvalidInitialState, SimulationError, STATUS  # noqa: E402
 from ._stepping import MappedSolver, StepMaps  # noqa: E402
-from .equations import (  # noqa: E402
-    METHODS, Appell, Formulation, Lagrange, Substituted, accelerations, choose_independent,
-)
-from . import design, equations, identify, solvers  # noqa: E402
-from .identify import FitResult, Record, fit  # noqa: E402
-from .identify.spec import FitSpec  # noqa: E402
 from ._sweep import sweep  # noqa: E402
+from .equations import (  # noqa: E402
+    accelerations,
+    Appell,
+    choose_independent,
+    Formulation,
+    Lagrange,
+    METHODS,
+    Substituted,
+)
+from .identify import fit, FitResult, Record  # noqa: E402
+from .identify.spec import FitSpec  # noqa: E402
+
 
 __version__ = "0.1.0"
 

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from ._status import STATUS
 from .linalg import cholesky
 
+
 __all__ = ["initial_checks", "mass_matrix_ok", "diagnose_stall"]
 
 STALLED_SPLIT_BELOW = 1e-4

@@ -10,6 +10,7 @@ from .equations.base import as_data, as_float, as_time
 from .equations.terms import constraint_terms, mass_and_velocity_terms
 from .linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
 
+
 __all__ = ["consistent_velocities", "project_velocities"]
 
 

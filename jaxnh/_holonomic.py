@@ -32,10 +32,11 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
+from ._mechanism import check_independent, Mechanism
 from .equations.base import as_data, as_float, as_time
-from .equations.split import VelocitySplit, choose_independent, pick
+from .equations.split import choose_independent, pick, VelocitySplit
 from .linalg import solve_square
-from ._mechanism import Mechanism, check_independent
+
 
 __all__ = ["HolonomicMechanism"]
 

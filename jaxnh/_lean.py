@@ -43,6 +43,7 @@ import jax.numpy as jnp
 
 from . import solvers as _S
 
+
 __all__ = ["LeanSolution", "Tableau", "TSIT5", "DOP853", "STATUS_MESSAGES", "lean_solve"]
 
 #: Meaning of `LeanSolution.status`.

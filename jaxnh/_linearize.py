@@ -42,13 +42,19 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .equations.base import as_data, as_float, as_time
+from ._mechanism import Mechanism
 from ._status import is_traced
+from .equations.base import as_data, as_float, as_time
 from .equations.split import (
-    VelocitySplit, best_partition, choose_independent, partition_quality, pick, resolve_independent,
+    best_partition,
+    choose_independent,
+    partition_quality,
+    pick,
+    resolve_independent,
+    VelocitySplit,
 )
 from .linalg import mm, solve_spd
-from ._mechanism import Mechanism
+
 
 __all__ = ["Linearization", "linearize"]
 

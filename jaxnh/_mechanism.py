@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+
 __all__ = ["Mechanism"]
 
 

@@ -13,6 +13,7 @@ from ._stepping import MappedSolver
 from .equations import Formulation, formulation
 from .equations.base import as_float, as_time
 
+
 __all__ = ["ODE", "ode"]
 
 
@@ -51,8 +52,9 @@ class ODE(eqx.Module):
 
     def error_norm(self, err):
         """RMS norm over the state entries that count in the error control."""
-        from ._sensitivity import _flat_mask, _masked_rms
         import jax.flatten_util
+
+        from ._sensitivity import _flat_mask, _masked_rms
 
         flat = jax.flatten_util.ravel_pytree(err)[0]
         return _masked_rms(flat, _flat_mask(self.form.error_mask(), self.y0))

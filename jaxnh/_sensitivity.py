@@ -41,6 +41,7 @@ import jax.tree_util as jtu
 
 from ._stepping import MappedSolver, SensitivityMaps
 
+
 __all__ = ["ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "LeanIntegrator", "choose_adjoint", "lean_compatible"]
 
 FORWARD_MAX_PARAMETERS = 64

@@ -5,12 +5,11 @@ from __future__ import annotations
 from typing import Any, Optional
 
 import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._status import STATUS, describe
+from ._status import describe, STATUS
+
 
 __all__ = ["Solution", "DenseMotion"]
 

@@ -13,8 +13,8 @@ from __future__ import annotations
 import diffrax
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
+
 
 __all__ = ["STATUS", "SimulationError", "InvalidInitialState", "describe", "error_for", "is_traced"]
 

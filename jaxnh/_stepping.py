@@ -29,6 +29,7 @@ import jax
 import jax.flatten_util
 import jax.numpy as jnp
 
+
 __all__ = ["StepMaps", "MappedSolver", "SensitivityMaps", "REJECT_ERROR"]
 
 REJECT_ERROR = 1e10

@@ -37,6 +37,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+
 __all__ = ["sweep", "default_mesh", "DEFAULT_CHUNK_PER_DEVICE"]
 
 DEFAULT_CHUNK_PER_DEVICE = 256

@@ -45,6 +45,7 @@ from jaxtyping import Array, Float
 
 from .profiles import Bounded, Profile, trainable as trainable_leaves  # noqa: F401  (Bounded re-exported)
 
+
 __all__ = ["Chebyshev", "Bounded", "optimize", "multistart", "fd_gradient"]
 
 

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+
 __all__ = [
     "Profile", "Constant", "Fourier", "PiecewiseLinear", "CubicSpline", "Sampled",
     "Positive", "Bounded", "trainable",

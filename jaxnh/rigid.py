@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+
 __all__ = [
     "RigidBodies", "Wheel", "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "vee",
     "time_derivative", "angular_velocity",

@@ -30,6 +30,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
+
 __all__ = ["DOP853", "Tsit5"]
 
 # ---------------------------------------------------------------------------------

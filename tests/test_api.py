@@ -10,6 +10,7 @@ import jaxnh as nh
 from jaxnh.models import variator as V
 from jaxnh.profiles import Fourier
 
+
 TS = jnp.linspace(0.0, 3.0, 31)
 MECH = V.mechanism()
 

@@ -14,15 +14,16 @@ about 5× longer for the same accuracy).
 """
 
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import diffrax
 import pytest
 import scipy.linalg
 
 import jaxnh as nh
 from jaxnh.models import bicycle as B
+
 
 P = B.default_params()
 PUB = B.PUBLISHED

@@ -10,11 +10,18 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
+from jaxnh._sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity
+from jaxnh._simulate import (
+    default_solver,
+    DOP853_BELOW_RTOL,
+    DOPRI8_BELOW_RTOL_LOOPED,
+    UNROLL_MAX_OPERATIONS,
+    vector_field_operations,
+)
 from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
-from jaxnh._sensitivity import FORWARD_MAX_PARAMETERS, ForwardSensitivity, choose_adjoint
-from jaxnh._simulate import DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED, UNROLL_MAX_OPERATIONS, default_solver, vector_field_operations
 from jaxnh.solvers import Tsit5
+
 
 MECH = V.mechanism()
 P = V.default_params()

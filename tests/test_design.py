@@ -13,6 +13,7 @@ import pytest
 from jaxnh.design import Bounded, Chebyshev, fd_gradient, optimize
 from jaxnh.profiles import Fourier
 
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 

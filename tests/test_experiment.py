@@ -4,7 +4,6 @@ criterion's gradient against central differences, `jaxnh design`'s input checks,
 the fit's ODE tolerance following the data (issue 18)."""
 
 import importlib.util
-import json
 import math
 import pathlib
 
@@ -16,10 +15,20 @@ import pytest
 import jaxnh  # noqa: F401  (64-bit mode)
 from jaxnh.design import fd_gradient
 from jaxnh.identify._design_cli import main as design_main
-from jaxnh.identify._experiment import (ChannelNoise, Limits, design_loss, embedded_truth, encoder_noise, experiment,
-                                        input_spec, optimal_design, predict, variator_experiment)
+from jaxnh.identify._experiment import (
+    ChannelNoise,
+    design_loss,
+    embedded_truth,
+    encoder_noise,
+    experiment,
+    input_spec,
+    Limits,
+    predict,
+    variator_experiment,
+)
 from jaxnh.models import variator as V
 from jaxnh.profiles import Bounded, Constant, Fourier
+
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -134,8 +143,9 @@ def test_design_gradient_matches_central_differences():
                      qd0=[4.0, 3.2], rtol=1e-12, atol=1e-12)
     loss = design_loss(exp, "A", of=("J1",), limits=Limits(multiplier=0.2, std={"J2": 1e-4}))
     spec = input_spec(p, ("M1",))
-    from jaxnh.design import _forward_value_and_grad
     import equinox as eqx
+
+    from jaxnh.design import _forward_value_and_grad
 
     theta, rest = eqx.partition(p, spec)
     value, g = jax.jit(lambda th: _forward_value_and_grad(lambda x: loss(eqx.combine(x, rest)), th))(theta)

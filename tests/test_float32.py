@@ -16,6 +16,7 @@ import pytest
 import jaxnh as nh
 from jaxnh.models import variator as V
 
+
 F32 = jnp.float32
 MECH = V.mechanism()
 TS = jnp.linspace(0.0, 3.0, 61)

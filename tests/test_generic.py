@@ -10,6 +10,7 @@ import pytest
 
 import jaxnh as nh
 
+
 P = {"m": 1.3, "I": 0.4, "J": 0.2, "r": 0.3, "k": 0.8, "c": 0.05}
 
 

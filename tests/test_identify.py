@@ -6,11 +6,9 @@ the default solver settings, so the solve compiles once per process.
 """
 
 import json
-import os
 import re
 import subprocess
 import sys
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -19,13 +17,14 @@ import optax
 import pytest
 
 import jaxnh as nh
-from jaxnh.identify import Record, fit, load_default, noise_level, read_csv, statistics, write_csv
+from jaxnh.identify import fit, load_default, noise_level, read_csv, Record, statistics, write_csv
+from jaxnh.identify._fit import fit_solver, GN_STEP_TOL
 from jaxnh.identify.diagnostics import analyse
-from jaxnh.identify._fit import GN_STEP_TOL, fit_solver
 from jaxnh.identify.parameters import Parametrisation
-from jaxnh.identify.variator import FREE, fit_variator, params_for, ratio_knots
+from jaxnh.identify.variator import fit_variator, FREE, params_for, ratio_knots
 from jaxnh.models import variator as V
 from jaxnh.profiles import CubicSpline, Profile
+
 
 TRUE = {"J1": 0.025, "J2": 0.04, "U21": np.array([1.2, 1.1, 0.95, 0.85, 0.9, 1.05, 1.15]), "w0": 3.0,
         "phi0": np.array([0.1, -0.2])}

@@ -20,6 +20,7 @@ from jaxnh._lean import lean_solve
 from jaxnh.models import variator as V
 from jaxnh.solvers import DOP853, Tsit5
 
+
 METHODS = {"tsit5": Tsit5, "dop853": DOP853}
 
 

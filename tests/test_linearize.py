@@ -10,6 +10,7 @@ import pytest
 import jaxnh as nh
 from jaxnh._linearize import linearize
 
+
 G, L = 9.81, 0.7
 
 PENDULUM = nh.Mechanism(

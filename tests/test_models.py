@@ -18,9 +18,8 @@ import scipy.special
 
 import jaxnh as nh
 from jaxnh._holonomic import HolonomicMechanism
-from jaxnh.models import disc as D
-from jaxnh.models import knife_edge as K
-from jaxnh.models import sleigh as S
+from jaxnh.models import disc as D, knife_edge as K, sleigh as S
+
 
 TOL = dict(rtol=1e-11, atol=1e-12, solver=diffrax.Dopri8())
 

@@ -8,8 +8,8 @@ import pytest
 import scipy.interpolate as si
 
 import jaxnh  # noqa: F401  (64-bit mode)
-from jaxnh.profiles import (Bounded, Constant, CubicSpline, Fourier, PiecewiseLinear, Positive, Sampled,
-                            trainable)
+from jaxnh.profiles import Bounded, Constant, CubicSpline, Fourier, PiecewiseLinear, Positive, Sampled, trainable
+
 
 RNG = np.random.default_rng(0)
 KNOTS = np.sort(RNG.uniform(0.0, 3.0, 8))

@@ -33,10 +33,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import given, HealthCheck, settings, strategies as st
 
 import jaxnh as nh
+
 
 # Fixed, reproducible profile: derandomized (same examples every run, no database),
 # no deadline (the first example of each shape includes compilation).

@@ -9,7 +9,8 @@ import pytest
 from jaxnh._linearize import lagrange_expression
 from jaxnh._mechanism import Mechanism
 from jaxnh.models import disc as D
-from jaxnh.rigid import RigidBodies, Wheel, rot_axis, rot_x, rot_y, rot_z, skew, vee
+from jaxnh.rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, skew, vee, Wheel
+
 
 KEY = jax.random.PRNGKey(7)
 

@@ -7,6 +7,7 @@ run in well under a minute.
 
 import jax
 
+
 jax.config.update("jax_enable_x64", True)
 
 import diffrax  # noqa: E402
@@ -15,6 +16,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from jaxnh.solvers import DOP853  # noqa: E402
+
 
 ORDER = 8  # global order of DOP853
 DENSE_LOCAL_ORDER = 8  # 7th-order continuous extension: local error O(h^8)

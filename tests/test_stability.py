@@ -11,7 +11,6 @@ Measured outcomes and recommendations are collected in benchmarks/STABILITY.md
 """
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,6 +21,7 @@ from scipy.integrate import solve_ivp
 import jaxnh as nh
 from jaxnh.models import variator as V
 from jaxnh.profiles import Profile
+
 
 N_REPORT = 201
 MAX_STEPS = 100_000

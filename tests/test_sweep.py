@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
+from jaxnh._sweep import default_mesh, sweep
 from jaxnh.models import variator as V
 from jaxnh.profiles import Fourier
-from jaxnh._sweep import default_mesh, sweep
+
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MECH = V.mechanism()

@@ -10,6 +10,7 @@ import jaxnh as nh
 from jaxnh.models import variator as V
 from jaxnh.profiles import Fourier
 
+
 METHODS_WITH_S = [("lagrange", False), ("appell", False), ("appell", True)]
 
 

@@ -21,12 +21,23 @@
 """
 
 from . import variator
-from .data import MIN_SAMPLES, Record, load_default, noise_level, read_csv, write_csv
+from ._experiment import (
+                          ChannelNoise,
+                          DesignResult,
+                          encoder_noise,
+                          Experiment,
+                          experiment,
+                          Limits,
+                          optimal_design,
+                          predict,
+                          Prediction,
+                          variator_experiment,
+)
+from ._fit import fit, FitResult, prepare
+from .data import load_default, MIN_SAMPLES, noise_level, read_csv, Record, write_csv
 from .diagnostics import Identifiability
-from ._fit import FitResult, fit, prepare
-from ._experiment import (ChannelNoise, DesignResult, Experiment, Limits, Prediction, encoder_noise, experiment,
-                          optimal_design, predict, variator_experiment)
 from .problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
+
 
 __all__ = [
     "fit", "FitResult", "prepare", "Record", "read_csv", "write_csv", "load_default", "noise_level",

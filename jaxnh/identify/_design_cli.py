@@ -38,6 +38,7 @@ import time
 
 import numpy as np
 
+
 __all__ = ["main", "build_parser"]
 
 Z95 = 1.959963984540054
@@ -165,8 +166,8 @@ def _run(args, files) -> int:
 
     from ..models import variator as V
     from ..profiles import Bounded, Fourier, Sampled
+    from ._experiment import design_loss, embedded_truth, Limits, optimal_design, predict, variator_experiment
     from .data import load_default
-    from ._experiment import Limits, design_loss, embedded_truth, optimal_design, predict, variator_experiment
 
     started = time.perf_counter()
     record = load_default()

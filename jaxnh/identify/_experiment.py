@@ -46,13 +46,14 @@ import optax
 
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
-from .._simulate import STATUS, simulate
+from .._simulate import simulate, STATUS
 from ..profiles import trainable
-from .data import Record
-from .diagnostics import Identifiability, analyse
 from ._fit import FitResult, prepare
+from .data import Record
+from .diagnostics import analyse, Identifiability
 from .parameters import resolve
 from .problem import Problem, statistics
+
 
 __all__ = [
     "ChannelNoise", "encoder_noise", "Experiment", "experiment", "Prediction", "predict", "Limits",

@@ -17,18 +17,26 @@ from typing import Any, Optional, Sequence
 import diffrax
 import equinox as eqx
 import jax
-import optimistix as optx
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
+from .._mechanism import Mechanism
 from .._sensitivity import FORWARD_MAX_PARAMETERS
 from ..equations.split import choose_independent
-from .._mechanism import Mechanism
-from .data import Record, noise_level
-from .diagnostics import Identifiability, LackOfFit, analyse, lack_of_fit
+from .data import noise_level, Record
+from .diagnostics import analyse, Identifiability, lack_of_fit, LackOfFit
 from .parameters import Parametrisation, resolve
-from .problem import (FAILED_RESIDUAL, Observations, Problem, _Progress, solve_least_squares, statistics,
-                      value_and_jacobian)
+from .problem import (
+    _Progress,
+    FAILED_RESIDUAL,
+    Observations,
+    Problem,
+    solve_least_squares,
+    statistics,
+    value_and_jacobian,
+)
+
 
 __all__ = ["fit", "prepare", "FitResult", "OPTIMIZERS", "GN_STEP_TOL", "FORWARD_MAX_UNKNOWNS", "ode_error_in_std",
            "ODE_ERROR_STD"]
@@ -376,8 +384,8 @@ def fit_solver(solver, params, rtol: float):
     """
     if solver is not None:
         return solver
-    from ..profiles import Sampled
     from .._simulate import DOP853_BELOW_RTOL
+    from ..profiles import Sampled
 
     sampled = any(isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(
         params, is_leaf=lambda x: isinstance(x, Sampled)))

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..profiles import trainable
 
+
 __all__ = ["Parametrisation", "resolve"]
 
 

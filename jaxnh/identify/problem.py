@@ -33,11 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..equations.split import VelocitySplit
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
 from .._simulate import simulate
+from ..equations.split import VelocitySplit
 from .parameters import Parametrisation
+
 
 __all__ = ["Observations", "Problem", "LevenbergMarquardt", "solve_least_squares", "column_scale", "value_and_jacobian", "statistics"]
 

@@ -4,4 +4,5 @@
 
 from . import bicycle, disc, knife_edge, sleigh, variator
 
+
 __all__ = ["bicycle", "disc", "knife_edge", "sleigh", "variator"]

@@ -42,7 +42,8 @@ import scipy.optimize
 
 from .._holonomic import HolonomicMechanism
 from .._linearize import linearize
-from ..rigid import RigidBodies, Wheel, rot_axis, rot_x, rot_y, rot_z
+from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
+
 
 __all__ = [
     "BENCHMARK", "PUBLISHED", "COORDINATES", "ROLL", "STEER", "INDEPENDENT", "LEAN_STEER",

@@ -29,7 +29,8 @@ import jax.numpy as jnp
 
 from .._linearize import linearize
 from .._mechanism import Mechanism
-from ..rigid import RigidBodies, Wheel, rot_x, rot_y, rot_z
+from ..rigid import RigidBodies, rot_x, rot_y, rot_z, Wheel
+
 
 __all__ = [
     "COORDINATES", "mechanism", "default_params", "bodies", "steady_spin", "steady_state",

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 
 from .._mechanism import Mechanism
 
+
 __all__ = ["mechanism", "default_params", "closed_form", "kinetic", "potential", "constraint"]
 
 

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 from .._mechanism import Mechanism
 from ..rigid import RigidBodies, rot_z
 
+
 __all__ = ["bodies", "mechanism", "default_params", "closed_form", "forward_speed", "initial_velocities"]
 
 

@@ -32,6 +32,7 @@ from jaxtyping import Array, Float
 from .._mechanism import Mechanism
 from ..profiles import Constant, Fourier, Profile
 
+
 __all__ = [
     "VariatorParams", "mechanism", "default_params", "closed_form",
     "paper_eq9", "paper_eq16", "paper_multiplier",
