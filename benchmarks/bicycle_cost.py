@@ -206,7 +206,8 @@ def sympy_costs(queue, numeric=False):
     if np.all(np.isfinite(A4)):
         res["_eig5"] = np.sort_complex(np.linalg.eigvals(A4))
     else:
-        res["_note"] = f"SymPy's linearised matrix is not finite at the operating point ({int(np.sum(~np.isfinite(A4)))} of 16 entries)"
+        n_bad = int(np.sum(~np.isfinite(A4)))
+        res["_note"] = f"SymPy's linearised matrix is not finite at the operating point ({n_bad} of 16 entries)"
     queue.put(dict(res))
 
 
@@ -259,7 +260,8 @@ def write_report(path, jx, sy, sympy_status, machine):
         return {k: (np.asarray(v).tolist() if not np.iscomplexobj(v) else [[z.real, z.imag] for z in np.ravel(v)])
                 for k, v in d.items()}
 
-    jpath.write_text(json.dumps(dict(jaxnh=clean(jx), sympy=clean(sy), sympy_status=sympy_status, machine=machine), indent=1))
+    record = dict(jaxnh=clean(jx), sympy=clean(sy), sympy_status=sympy_status, machine=machine)
+    jpath.write_text(json.dumps(record, indent=1))
     print(f"wrote {path} and {jpath}")
 
 

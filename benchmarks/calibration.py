@@ -151,7 +151,8 @@ def main(argv=None):
         f"batched with `jax.vmap` ({args.batch} per batch).",
         "",
         f"Converged: {n_ok} of {args.n}. Coverage of the true value by estimate ± 1.96 std "
-        f"(binomial standard deviation of a coverage estimate at 95 %: ±{100 * res['binomial_std_of_coverage']:.1f} points):",
+        "(binomial standard deviation of a coverage estimate at 95 %: "
+        f"±{100 * res['binomial_std_of_coverage']:.1f} points):",
         "",
         "| parameter | true | coverage 95 % | mean z | std z | mean rel. std | spread of estimates (rel.) |",
         "|---|---|---|---|---|---|---|",

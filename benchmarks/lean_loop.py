@@ -536,7 +536,9 @@ def section(R: dict | None) -> list:
     S_, B_ = R["single"], R["batch"]
 
     def row(goal, label, value, ok, fmt):
-        return [label, goal, "—" if value is None else fmt(value), "—" if value is None else ("yes" if ok(value) else "no")]
+        if value is None:
+            return [label, goal, "—", "—"]
+        return [label, goal, fmt(value), "yes" if ok(value) else "no"]
 
     t = []
     for tab in ("dop853", "tsit5"):
@@ -595,7 +597,8 @@ def section(R: dict | None) -> list:
             rows.append([name, "failed", "", "", ""])
     for name, r in R["single"].items():
         if "compile_cpu" in r:
-            rows.append([name, "—", f"{r['compile_cpu']:.2f} s (numba JIT of the solver both numba rows share, first call)", "—", "no"])
+            note = f"{r['compile_cpu']:.2f} s (numba JIT of the solver both numba rows share, first call)"
+            rows.append([name, "—", note, "—", "no"])
     L += [table(["contender", "trace (CPU)", "compile (CPU)", "HLO instructions (compiled)", "host callbacks"], rows),
           ""]
     return L

@@ -438,9 +438,9 @@ def build(R) -> tuple[str, dict]:
               if R.get(k)), C.machine())
     L = ["# jaxnh performance benchmarks (issue 4)", "",
          "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`, "
-         "20–60 minutes on this 2-core machine, by its load); `make bench-quick` (= `JAXNH_BENCH_OUT=benchmarks/quick python -m "
-         "benchmarks.run_all --quick`) is the short version, written to `benchmarks/quick/` so it does not "
-         "overwrite these results. Every number below is written by "
+         "20–60 minutes on this 2-core machine, by its load); `make bench-quick` "
+         "(= `JAXNH_BENCH_OUT=benchmarks/quick python -m benchmarks.run_all --quick`) is the short version, "
+         "written to `benchmarks/quick/` so it does not overwrite these results. Every number below is written by "
          "`benchmarks/report.py` from the `results/*.json` files beside this file.", "",
          "## Machine and method", "",
          f"* CPU: {m['cpu']}, {m['cores']} cores; {m['platform']}",
@@ -503,7 +503,8 @@ def build(R) -> tuple[str, dict]:
         for r in ov["rhs_cost"]:
             rows.append([r["problem"], f"{r['horizon']:g} s", C.SOLVER_LABELS[r["solver"]], fmt_t(r["time"]["hand"]),
                          fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"]),
-                         fmt_x(r["ratio"].get("appell jit(simulate)")), fmt_x(r["ratio"].get("appell through simulate")),
+                         fmt_x(r["ratio"].get("appell jit(simulate)")),
+                         fmt_x(r["ratio"].get("appell through simulate")),
                          fmt_t(r["simulate_overhead"]["appell"]),
                          f"{r['compile']['hand']['cpu']:.1f} / {r['compile']['appell']['cpu']:.1f} / "
                          f"{r['compile']['lagrange']['cpu']:.1f} s"])
@@ -555,7 +556,8 @@ def build(R) -> tuple[str, dict]:
     ct = R.get("compile_time")
     if ct:
         L += ["## First-call time (fresh process)", "",
-              table(["scenario", "import", "first call (CPU / wall)", "second call (CPU)", "compile = first − second (CPU / wall)"],
+              table(["scenario", "import", "first call (CPU / wall)", "second call (CPU)",
+                     "compile = first − second (CPU / wall)"],
                     [[r["label"], f"{r['import_s']:.1f} s", f"{r['first']['cpu']:.2f} / {r['first']['wall']:.2f} s",
                       fmt_t(r["second"]["cpu"]), f"{r['compile']['cpu']:.2f} / {r['compile']['wall']:.2f} s"]
                      for r in ct["rows"] if "error" not in r]), ""]

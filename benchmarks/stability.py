@@ -439,7 +439,8 @@ def redundant_and_failures(results, quick):
         lam = np.asarray(sol.multipliers)
         rows.append([f"constraint given twice (c, 2c): {name}", "ok" if bool(sol.success) else sol.message,
                      f"speed error {np.max(np.abs(np.asarray(sol.qd[:, 0]) - w)) / W0:.1e}, residual "
-                     f"{np.max(np.abs(np.asarray(sol.residual))):.1e}, multipliers finite: {bool(np.all(np.isfinite(lam)))}, "
+                     f"{np.max(np.abs(np.asarray(sol.residual))):.1e}, "
+                     f"multipliers finite: {bool(np.all(np.isfinite(lam)))}, "
                      f"λ2/λ1 = {np.median(lam[1:, 1] / lam[1:, 0]):.6f}"])
     try:
         simulate(p, ts, mech=MECH_REDUNDANT, method="appell")
@@ -500,7 +501,10 @@ def redundant_and_failures(results, quick):
 
 
 def to32(tree):
-    return jax.tree.map(lambda x: x.astype(jnp.float32) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x, tree)
+    def cast(x):
+        return x.astype(jnp.float32) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x
+
+    return jax.tree.map(cast, tree)
 
 
 def precision(results, quick):
@@ -542,9 +546,11 @@ def precision(results, quick):
             ok = bool(sol.success)
             res = np.abs(np.asarray(sol.residual, np.float64))
             eT = float(np.max(np.abs(np.asarray(sol.energy, np.float64) - T_ex) / T_ex)) if ok else None
-            eq = float(np.max(np.abs(np.asarray(sol.q, np.float64)[whole] - q_ex[whole])) / np.max(np.abs(q_ex))) if ok else None
+            eq = (float(np.max(np.abs(np.asarray(sol.q, np.float64)[whole] - q_ex[whole])) / np.max(np.abs(q_ex)))
+                  if ok else None)
             results["f32_long"][name] = dict(res=float(res.max()), eT=eT, eq=eq, ok=ok)
-            rows32.append([name, short_status(sol), stats(sol)[0], fmt(float(res.max()) if ok else None), fmt(eT), fmt(eq)])
+            rows32.append([name, short_status(sol), stats(sol)[0], fmt(float(res.max()) if ok else None), fmt(eT),
+                           fmt(eq)])
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -607,7 +613,8 @@ def main(argv=None):
 
 def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_prec, t_f32long, elapsed):
     L = R["long"]
-    lag, bau, pro, app = (L[("driven", k)] for k in ("lagrange", "lagrange + baumgarte", "lagrange + projection", "appell"))
+    lag, bau, pro, app = (L[("driven", k)]
+                          for k in ("lagrange", "lagrange + baumgarte", "lagrange + projection", "appell"))
     sub = L.get(("free", "substituted (wrong, eq. 16)"))
     S = R["stress"]
     skip_lag = S.get(("tanh step 0.1→10, width 1e-4, no torques", "lagrange", "Tsit5"))
@@ -692,7 +699,8 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "",
         "* **Steep ratio law (tanh step 0.1 → 10, width down to 1e-4 of the run).** With torques every "
         f"solver resolves it: Tsit5 (appell) took {steep_steps[0]} steps at width 0.1 and {steep_steps[1]} at "
-        f"width 1e-4, with errors ≤ {steep_err:.0e}. It is not stiff, only fast. Without torques Lagrange's vector field sees the ratio only through U21', which is "
+        f"width 1e-4, with errors ≤ {steep_err:.0e}. It is not stiff, only fast. Without torques Lagrange's "
+        "vector field sees the ratio only through U21', which is "
         "zero to rounding away from the step, so the controller grows the step and can jump the whole "
         "transition: "
         + (f"Tsit5 took {skip_lag['steps']} steps with error {skip_lag['err']:.0e} — a wrong answer with a "
@@ -703,7 +711,8 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         f"{R['skip']['lagrange + baumgarte']['err']:.0e}, {R['skip']['lagrange + projection']['err']:.0e}). "
         f"`step_ts` at the centre of the change ({R['skip']['lagrange, step_ts=[centre of the step]']['steps']} "
         f"steps, error {R['skip']['lagrange, step_ts=[centre of the step]']['err']:.0e}) or `dtmax` "
-        f"({R['skip']['lagrange, dtmax=1e-3 s']['steps']} steps, error {R['skip']['lagrange, dtmax=1e-3 s']['err']:.0e}) "
+        f"({R['skip']['lagrange, dtmax=1e-3 s']['steps']} steps, "
+        f"error {R['skip']['lagrange, dtmax=1e-3 s']['err']:.0e}) "
         "fix plain Lagrange. Recommendation: for ratio laws with fast changes use `method='appell'` or a "
         "stabilised Lagrange, and pass `step_ts` at known transitions.",
         f"* **Inertia ratios J1/J2 from 1e-6 to 1e6**: Tsit5 steps {min(jr_steps)}–{max(jr_steps)}, errors "
@@ -808,14 +817,33 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "",
         "| situation | do | why (section) |",
         "|---|---|---|",
-        "| long runs with `method='lagrange'` | `stabilization='baumgarte'` (default rate) or `'projection'`, or use `'appell'` | unstabilised drift grows with time (A) |",
-        "| fast changes of the ratio law | `method='appell'` or a stabilised Lagrange; `step_ts=[t_c]` at a known transition (or `dtmax` below its width); with plain `'lagrange'` record `'residual'` and check it | plain Lagrange can step over a transition it cannot see (B) |",
-        "| strong damping, stiff couplings | `diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=..., atol=...))`; tighten rtol for values between steps | explicit solvers hit `max_steps`; the default chord root finder rejects most steps (B) |",
-        "| a ratio or constraint coefficient that passes through zero | `method='lagrange'`, or `independent=` chosen so the dependent block stays regular for the whole motion | the split chosen at t0 can become singular: accuracy degrades as it nears singularity, and a pass through it fails with status `singular_split` (C) |",
-        "| Baumgarte rate | the default, unless the reports are far denser than the motion: then set `baumgarte_rate` near the motion's rates | α far above them makes the problem stiff (D) |",
+        # one table row per string (adjacent literals are joined)
+        "| long runs with `method='lagrange'` "
+        "| `stabilization='baumgarte'` (default rate) or `'projection'`, or use `'appell'` "
+        "| unstabilised drift grows with time (A) |",
+        "| fast changes of the ratio law "
+        "| `method='appell'` or a stabilised Lagrange; `step_ts=[t_c]` at a known transition (or `dtmax` below its "
+        "width); with plain `'lagrange'` record `'residual'` and check it "
+        "| plain Lagrange can step over a transition it cannot see (B) |",
+        "| strong damping, stiff couplings "
+        "| `diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=..., atol=...))`; tighten rtol for values between "
+        "steps "
+        "| explicit solvers hit `max_steps`; the default chord root finder rejects most steps (B) |",
+        "| a ratio or constraint coefficient that passes through zero "
+        "| `method='lagrange'`, or `independent=` chosen so the dependent block stays regular for the whole motion "
+        "| the split chosen at t0 can become singular: accuracy degrades as it nears singularity, and a pass "
+        "through it fails with status `singular_split` (C) |",
+        "| Baumgarte rate "
+        "| the default, unless the reports are far denser than the motion: then set `baumgarte_rate` near the "
+        "motion's rates "
+        "| α far above them makes the problem stiff (D) |",
         "| redundant constraints | `method='lagrange'` (minimum-norm multipliers) | Appell refuses (E) |",
-        "| batches with possibly bad members | `throw=False`, check `sol.status` per member | one NaN member is flagged, the rest run (F) |",
-        "| float32 | sweeps and first fits at 1e-5 … 1e-4 over short horizons; Appell; float64 for the final answer and for long runs | (G) |",
+        "| batches with possibly bad members | `throw=False`, check `sol.status` per member "
+        "| one NaN member is flagged, the rest run (F) |",
+        "| float32 "
+        "| sweeps and first fits at 1e-5 … 1e-4 over short horizons; Appell; float64 for the final answer and for long "
+        "runs "
+        "| (G) |",
         "",
     ]
     return "\n".join(lines)

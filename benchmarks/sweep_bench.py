@@ -216,7 +216,8 @@ def bench_devices(B, chunk, repeats):
     rows = []
     for d in (1, 2):
         env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={d}", JAX_PLATFORMS="cpu")
-        cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--scaling-worker", str(B), str(chunk), str(repeats)]
+        cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--scaling-worker", str(B), str(chunk),
+               str(repeats)]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1200)
         if proc.returncode != 0:
             raise RuntimeError(proc.stderr[-2000:])
@@ -269,7 +270,8 @@ def bench_gradient(repeats):
     t_f = best_of(lambda: jax.block_until_ready(fwd(probe)), repeats * 5)[1]
     t_g = best_of(lambda: jax.block_until_ready(grad(probe)), repeats * 5)[1]
     steps = int(O.run(probe).stats["num_steps"])
-    print(f"  design objective (CPU time): forward {1e3 * t_f:.3f} ms, value and gradient (8 coefficients) {1e3 * t_g:.3f} ms "
+    print(f"  design objective (CPU time): forward {1e3 * t_f:.3f} ms, "
+          f"value and gradient (8 coefficients) {1e3 * t_g:.3f} ms "
           f"= {t_g / t_f:.1f}× ({steps} solver steps; compile {c_f:.1f} s and {c_g:.1f} s)", flush=True)
     return {"forward_ms": 1e3 * t_f, "value_and_grad_ms": 1e3 * t_g, "ratio": t_g / t_f, "n_params": int(probe.size),
             "solver_steps": steps, "compile_forward_s": c_f, "compile_grad_s": c_g}
@@ -294,7 +296,8 @@ def write_report(res, out: pathlib.Path):
     L.append("")
     L.append("## Time per trajectory against batch size")
     L.append("")
-    L.append("| batch | `nh.sweep` wall (ms/trajectory) | `nh.sweep` CPU (ms/trajectory) | one `jit(vmap)` call, wall / CPU (ms/trajectory) | first sweep call incl. compile (s) |")
+    L.append("| batch | `nh.sweep` wall (ms/trajectory) | `nh.sweep` CPU (ms/trajectory) "
+             "| one `jit(vmap)` call, wall / CPU (ms/trajectory) | first sweep call incl. compile (s) |")
     L.append("|---:|---:|---:|---:|---:|")
     for r in res["batches"]:
         vm = f"{r['vmap_per_traj_ms']:.4f} / {r['vmap_cpu_per_traj_ms']:.4f}" if "vmap_per_traj_ms" in r else "—"
@@ -318,7 +321,8 @@ def write_report(res, out: pathlib.Path):
     L.append("")
     L.append("## Devices")
     L.append("")
-    L.append("| devices | batch | chunk | wall time (s) | ms/trajectory | speed-up | process CPU time (s) | cores used (CPU/wall) |")
+    L.append("| devices | batch | chunk | wall time (s) | ms/trajectory | speed-up | process CPU time (s) "
+             "| cores used (CPU/wall) |")
     L.append("|---:|---:|---:|---:|---:|---:|---:|---:|")
     t1 = res["devices"][0]["s"]
     for r in res["devices"]:
@@ -374,7 +378,8 @@ def _plot(res, path):
     ax[0].axhline(res["loop"]["cpu_per_traj_ms"], color="C2", ls=":", label="Python loop of single solves")
     ax[0].axhline(res["scipy"]["cpu_per_traj_ms"], color="C3", ls="-.",
                   label=f"SciPy DOP853 loop (rtol {res['scipy']['rtol']:g})")
-    ax[0].set(xlabel="batch size", ylabel="CPU ms per trajectory", title=f"variator, 5 s, error ≤ {res['scipy']['jaxnh_error']:.0e}")
+    ax[0].set(xlabel="batch size", ylabel="CPU ms per trajectory",
+              title=f"variator, 5 s, error ≤ {res['scipy']['jaxnh_error']:.0e}")
     ax[0].legend(fontsize=8)
     d = res["devices"]
     ax[1].bar([str(r["devices"]) for r in d], [1e3 * r["s"] / r["batch"] for r in d], color=["C0", "C1"])

@@ -114,8 +114,8 @@ def run(problem: str, quick: bool) -> dict:
         add_jax(f"hand/{sname}", "hand", "hand", sname, fn, P["hand_y0"], cfg["tols"])
     if cfg["implicit"]:
         for method in ("appell",):
-            fn, y0 = C.jaxnh_solver_fn(P["mech"], method, P["q0"], P["qd0"], P["params"], P["ts"], C.SOLVERS["Kvaerno5"](),
-                                       independent=P["independent"])
+            fn, y0 = C.jaxnh_solver_fn(P["mech"], method, P["q0"], P["qd0"], P["params"], P["ts"],
+                                       C.SOLVERS["Kvaerno5"](), independent=P["independent"])
             add_jax(f"{method}/Kvaerno5", "jaxnh", method, "Kvaerno5", fn, y0, IMPLICIT_TOLS)
         fn = C.hand_solver_fn(P["hand_vf"], P["hand_unpack"], P["ts"], C.SOLVERS["Kvaerno5"]())
         add_jax("hand/Kvaerno5", "hand", "hand", "Kvaerno5", fn, P["hand_y0"], IMPLICIT_TOLS)
@@ -177,7 +177,8 @@ def _interleave_heavy(calls, heavy, rounds, budget):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problem", choices=["variator", "generic", "both"], default="both")
-    ap.add_argument("--quick", action="store_true", help="variator only, appell and hand in Tsit5 and DOP853, 4 tolerances")
+    ap.add_argument("--quick", action="store_true",
+                    help="variator only, appell and hand in Tsit5 and DOP853, 4 tolerances")
     a = ap.parse_args(argv)
     probs = ["variator", "generic"] if a.problem == "both" else [a.problem]
     if a.quick and a.problem == "both":

@@ -52,7 +52,8 @@ ls = np.array(bicycle.LEAN_STEER)
 eig = np.array([np.linalg.eigvals(np.asarray(A)[ls][:, ls]) for A in lin.A[2:]])
 for v, key in ((0.0, "eigenvalues_v0"), (5.0, "eigenvalues_v5")):
     i = int(np.argmin(np.abs(np.asarray(speeds[2:]) - v)))
-    print(f"eigenvalues at {v} m/s: {np.sort_complex(eig[i])}\n          published: {np.sort_complex(np.array(pub[key]))}")
+    print(f"eigenvalues at {v} m/s: {np.sort_complex(eig[i])}\n"
+          f"          published: {np.sort_complex(np.array(pub[key]))}")
 
 fig, ax = plt.subplots(figsize=(7, 4.5))
 v = np.asarray(speeds[2:])

@@ -37,7 +37,8 @@ lin = jax.jit(jax.vmap(lambda s: disc.linearized(*disc.upright(s, p), p)))(spins
 eig = np.array([np.linalg.eigvals(np.asarray(A)) for A in lin.A])
 unstable = eig.real.max(axis=1) > 1e-9
 lo, hi = float(spins[unstable].max()), float(spins[~unstable].min())
-print(f"critical spin: analytic √(m g r I1 / (I3 (I3 + m r²))) = {crit:.6f} rad/s (= √(g/3r) = {np.sqrt(9.81 / 0.9):.6f}); "
+print(f"critical spin: analytic √(m g r I1 / (I3 (I3 + m r²))) = {crit:.6f} rad/s "
+      f"(= √(g/3r) = {np.sqrt(9.81 / 0.9):.6f}); "
       f"the linearised model turns stable between {lo:.4f} and {hi:.4f} rad/s on this grid")
 
 fig, axs = plt.subplots(1, 3, figsize=(14, 4))
@@ -53,7 +54,8 @@ for s, colour in ((0.8 * crit, "tab:red"), (1.5 * crit, "tab:green")):
     q0, qd0 = disc.upright(s, p)
     sol = nh.simulate(mech, p, q0, qd0.at[3].set(0.05), ts, method="appell", rtol=1e-10, atol=1e-12, throw=False)
     axs[1].plot(ts, sol.q[:, 3], color=colour, label=f"Ω = {s / crit:.1f} Ω_crit")
-axs[1].set(xlabel="time (s)", ylabel="lean φ (rad)", ylim=(-1.6, 1.6), title="upright rolling, lean rate kick 0.05 rad/s")
+axs[1].set(xlabel="time (s)", ylabel="lean φ (rad)", ylim=(-1.6, 1.6),
+           title="upright rolling, lean rate kick 0.05 rad/s")
 axs[1].legend(fontsize=8)
 
 # a steady circular motion: lean 0.3 rad, yaw rate 2 rad/s

@@ -83,7 +83,9 @@ class HolonomicMechanism(eqx.Module):
             raise TypeError("HolonomicMechanism: `kinetic` and `holonomic` must be functions")
         dep = tuple(self.dependent)
         if not dep or len(set(dep)) != len(dep) or not all(isinstance(i, int) and i >= 0 for i in dep):
-            raise ValueError(f"HolonomicMechanism: `dependent` must be distinct coordinate indices ≥ 0; got {self.dependent!r}")
+            raise ValueError(
+                f"HolonomicMechanism: `dependent` must be distinct coordinate indices ≥ 0; got {self.dependent!r}"
+            )
         if self.independent is not None and set(self.independent) & set(dep):
             raise ValueError(
                 f"HolonomicMechanism: independent velocities {tuple(self.independent)} include dependent "
@@ -239,7 +241,8 @@ class HolonomicMechanism(eqx.Module):
         """Constraint values at a state: `g` (h,), `ġ` (h,) and the nonholonomic `c` (m,)."""
         q = as_float(q)
         t = as_time(t, q)
-        g, gd = jax.jvp(lambda x, t_: self._residual(x, t_, params), (q, t), (jnp.asarray(qd, q.dtype), jnp.ones_like(t)))
+        g, gd = jax.jvp(lambda x, t_: self._residual(x, t_, params), (q, t),
+                        (jnp.asarray(qd, q.dtype), jnp.ones_like(t)))
         c = self.constraints(q, qd, t, params) if self.constraints is not None else jnp.zeros((0,), q.dtype)
         return {"holonomic": g, "holonomic_rate": gd, "nonholonomic": jnp.asarray(c)}
 
@@ -392,7 +395,8 @@ class HolonomicMechanism(eqx.Module):
         free = self.free(s)
         red_ind = None if ind is None else tuple(free.index(i) for i in ind)
         mech = self.reduced(s)
-        sol = simulate(mech, params, pick(q0, free), pick(qd0, free), ts, method="appell", independent=red_ind, **kwargs)
+        sol = simulate(mech, params, pick(q0, free), pick(qd0, free), ts, method="appell", independent=red_ind,
+                       **kwargs)
         return self.expand(sol, params)
 
 

@@ -51,8 +51,9 @@ STATUS_MESSAGES = {
     0: "success: every report time was reached",
     1: "max_steps reached before the last report time (step attempts, accepted or rejected, hit max_steps)",
     2: ("step size underflow: the step size became too small to advance t in floating point (after a "
-        "rejection, or for an attempt itself), or non-finite. Almost always a non-finite value (NaN/inf) in the vector field or the "
-        "state, which makes every attempt fail; otherwise a singularity or a tolerance below rounding."),
+        "rejection, or for an attempt itself), or non-finite. Almost always a non-finite value (NaN/inf) in the "
+        "vector field or the state, which makes every attempt fail; otherwise a singularity or a tolerance below "
+        "rounding."),
 }
 
 
@@ -208,7 +209,8 @@ def _dop853_dense_eval(r, y0, s):
 
 DOP853 = Tableau(
     name="dop853", order=8, error_order=8, c=tuple(_S._C[:12]), a={i: _S._A[i] for i in range(2, 13)}, b=_S._B,
-    error=_dop853_error, evals_per_step=12, dense_evals=3, dense_prepare=_dop853_dense_prepare, dense_eval=_dop853_dense_eval,
+    error=_dop853_error, evals_per_step=12, dense_evals=3, dense_prepare=_dop853_dense_prepare,
+    dense_eval=_dop853_dense_eval,
 )
 """Dormand–Prince 8(5,3) with Hairer's error estimate and 7th-order dense output (Hairer,
 Nørsett & Wanner, Solving ODEs I, 2nd ed., §II.10), as `jaxnh.solvers.DOP853`."""
@@ -334,7 +336,7 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
     q = float(tab.error_order)
     beta1 = (icoeff + pcoeff) / q
     beta2 = -pcoeff / q
-    t0, t_end = ts[0], ts[-1]
+    t0 = ts[0]
     eps = jnp.finfo(dtype).eps
 
     # One traced and lowered sub-computation shared by every stage (as jaxnh.solvers does): the

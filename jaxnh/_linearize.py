@@ -170,7 +170,8 @@ def linearize(
         accelerations = jnp.asarray(accelerations, dtype=q.dtype)
         if accelerations.shape != (s - m,):
             raise ValueError(
-                f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); got {accelerations.shape}"
+                f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); "
+                f"got {accelerations.shape}"
             )
     A, mass, damping, stiffness, rates, x0 = _linearize(
         mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations

@@ -82,13 +82,18 @@ class Mechanism(eqx.Module):
 
     def __check_init__(self):
         if not callable(self.kinetic):
-            raise TypeError(f"Mechanism: `kinetic` must be a function T(q, qd, t, params), got {type(self.kinetic).__name__}")
+            raise TypeError(
+                f"Mechanism: `kinetic` must be a function T(q, qd, t, params), got {type(self.kinetic).__name__}"
+            )
         for name in ("constraints", "forces", "potential", "acceleration_energy"):
             f = getattr(self, name)
             if f is not None and not callable(f):
                 raise TypeError(f"Mechanism: `{name}` must be a function or None, got {type(f).__name__}")
         if self.holonomic is not None and not callable(self.holonomic):
-            raise TypeError(f"Mechanism: `holonomic` must be a function g(q, t, params) or None, got {type(self.holonomic).__name__}")
+            raise TypeError(
+                "Mechanism: `holonomic` must be a function g(q, t, params) or None, "
+                f"got {type(self.holonomic).__name__}"
+            )
         if self.names is not None and not all(isinstance(n, str) for n in self.names):
             raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
 
@@ -179,18 +184,23 @@ class Mechanism(eqx.Module):
         if not jnp.issubdtype(T.dtype, jnp.inexact):
             raise TypeError(
                 f"Mechanism `kinetic` returned dtype {T.dtype}: T must be a floating-point scalar (it is "
-                "differentiated twice for the mass matrix); compute it from the float velocities qd, e.g. 0.5 * J * qd[0] ** 2"
+                "differentiated twice for the mass matrix); compute it from the float velocities qd, "
+                "e.g. 0.5 * J * qd[0] ** 2"
             )
         m = 0
         if self.constraints is not None:
             c = out(self.constraints, "constraints", q, qd, t, params)
             if len(getattr(c, "shape", ())) != 1:
-                raise ValueError(f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}")
+                raise ValueError(
+                    f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}"
+                )
             m = c.shape[0]
         if self.holonomic is not None:
             g = out(self.holonomic, "holonomic", q, t, params)
             if len(getattr(g, "shape", ())) != 1:
-                raise ValueError(f"Mechanism `holonomic` must return a vector of shape (h,); got shape {getattr(g, 'shape', None)}")
+                raise ValueError(
+                    f"Mechanism `holonomic` must return a vector of shape (h,); got shape {getattr(g, 'shape', None)}"
+                )
             m += g.shape[0]
         if m > s:
             raise ValueError(
@@ -208,7 +218,9 @@ class Mechanism(eqx.Module):
         if self.acceleration_energy is not None:
             S = out(self.acceleration_energy, "acceleration_energy", q, qd, qd, t, params)
             if getattr(S, "shape", None) != ():
-                raise ValueError(f"Mechanism `acceleration_energy` must return a scalar; got shape {getattr(S, 'shape', None)}")
+                raise ValueError(
+                    f"Mechanism `acceleration_energy` must return a scalar; got shape {getattr(S, 'shape', None)}"
+                )
         if self.independent is not None:
             check_independent(self.independent, s, m)
         return m
@@ -245,7 +257,9 @@ class Mechanism(eqx.Module):
         d = np.diag(M)
         eig = np.linalg.eigvalsh(0.5 * (M + M.T))
         scaled = np.linalg.eigvalsh(0.5 * (M + M.T) / np.sqrt(np.outer(np.abs(d), np.abs(d)) + np.finfo(M.dtype).tiny))
-        if np.any(d <= 0) or scaled.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(scaled).max(), np.finfo(M.dtype).tiny):
+        if np.any(d <= 0) or (
+            scaled.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(scaled).max(), np.finfo(M.dtype).tiny)
+        ):
             raise ValueError(
                 "Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not positive "
                 f"definite, or singular to {M.dtype} precision (eigenvalues {eig}; after scaling to a "
@@ -264,7 +278,9 @@ class Mechanism(eqx.Module):
                 f"(max {np.max(np.abs(c)):.3g}); expected ≤ {rtol * scale:.3g}. "
                 "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
             )
-        if not self.nonlinear_constraints and np.max(np.abs(H), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(A), initial=0.0)):
+        if not self.nonlinear_constraints and (
+            np.max(np.abs(H), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(A), initial=0.0))
+        ):
             raise ValueError(
                 "Mechanism `constraints` is nonlinear in qd (∂²c/∂qd² ≠ 0 at the initial state); "
                 "pass nonlinear_constraints=True to Mechanism."

@@ -191,7 +191,8 @@ def lean_compatible(controller) -> bool:
     import optimistix as optx
 
     return (isinstance(controller, diffrax.PIDController) and controller.norm is optx.rms_norm
-            and controller.dtmin is None and controller.dtmax is None and controller.pcoeff == 0 and controller.dcoeff == 0
+            and controller.dtmin is None and controller.dtmax is None
+            and controller.pcoeff == 0 and controller.dcoeff == 0
             and controller.icoeff == 1 and controller.factormin == 0.2 and controller.factormax == 10.0
             and controller.safety == 0.9 and controller.error_order is None)
 

@@ -80,7 +80,9 @@ class Solution(eqx.Module):
     def evaluate(self, t):
         """`(q, qd)` at any time t (s) from the dense output (needs `saveat=SaveAt(dense=True)`)."""
         if self.dense is None:
-            raise ValueError("Solution.evaluate needs dense output: pass saveat=diffrax.SaveAt(ts=ts, dense=True) to simulate")
+            raise ValueError(
+                "Solution.evaluate needs dense output: pass saveat=diffrax.SaveAt(ts=ts, dense=True) to simulate"
+            )
         return self.dense.evaluate(t)
 
     @property
@@ -98,7 +100,8 @@ class Solution(eqx.Module):
             return f"success ({codes.size} of {codes.size})"
         values, counts = np.unique(codes, return_counts=True)
         parts = [f"{n} × {describe(int(v))}" for v, n in zip(values, counts)]
-        return f"{codes.size - int(np.sum(codes == int(STATUS.successful._value)))} of {codes.size} failed: " + "; ".join(parts)
+        n_failed = codes.size - int(np.sum(codes == int(STATUS.successful._value)))
+        return f"{n_failed} of {codes.size} failed: " + "; ".join(parts)
 
     def to_dataframe(self):
         """The motion as a pandas DataFrame (needs pandas)."""

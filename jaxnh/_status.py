@@ -98,8 +98,8 @@ class InvalidInitialState(SimulationError, ValueError):
     matrix that is not positive definite, inconsistent velocities, ...)."""
 
 
-INPUT_FAILURES = ("non_finite_input", "bad_report_times", "mass_matrix_not_positive_definite", "inconsistent_velocities",
-                  "velocity_free_constraint", "constraints_nonlinear")
+INPUT_FAILURES = ("non_finite_input", "bad_report_times", "mass_matrix_not_positive_definite",
+                  "inconsistent_velocities", "velocity_free_constraint", "constraints_nonlinear")
 
 
 def error_for(status) -> SimulationError:

@@ -141,7 +141,9 @@ def optimize(
         new, opt_state, value = _optimize_step(loss, optimizer, gradient, theta, rest, opt_state)
         value = float(value)
         if not np.isfinite(value):
-            raise FloatingPointError(f"optimize: loss is {value} at step {k}; lower the learning rate or check the model")
+            raise FloatingPointError(
+                f"optimize: loss is {value} at step {k}; lower the learning rate or check the model"
+            )
         history.append(value)
         if value < best_value:
             best, best_value = theta, value

@@ -57,7 +57,7 @@ def cholesky(M: Float[Array, "s s"]) -> Float[Array, "s s"]:
     return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(s)]) for i in range(s)])
 
 
-def solve_lower(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+def solve_lower(L: Float[Array, "s s"], b: Float[Array, " s *k"]) -> Float[Array, " s *k"]:
     """Solve L x = b for lower-triangular L (forward substitution)."""
     s = L.shape[0]
     if s > UNROLL_MAX:
@@ -71,7 +71,7 @@ def solve_lower(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array,
     return jnp.stack(x)
 
 
-def solve_upper_t(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+def solve_upper_t(L: Float[Array, "s s"], b: Float[Array, " s *k"]) -> Float[Array, " s *k"]:
     """Solve Lᵀ x = b for lower-triangular L (back substitution)."""
     s = L.shape[0]
     if s > UNROLL_MAX:
@@ -85,7 +85,7 @@ def solve_upper_t(L: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Arra
     return jnp.stack(x)
 
 
-def solve_spd(M: Float[Array, "s s"], b: Float[Array, "s *k"]) -> Float[Array, "s *k"]:
+def solve_spd(M: Float[Array, "s s"], b: Float[Array, " s *k"]) -> Float[Array, " s *k"]:
     """Solve M x = b for symmetric positive definite M by Cholesky."""
     L = cholesky(M)
     return solve_upper_t(L, solve_lower(L, b))
@@ -158,7 +158,7 @@ def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[A
     return x
 
 
-def solve_square(A: Float[Array, "n n"], b: Float[Array, "n *k"]) -> Float[Array, "n *k"]:
+def solve_square(A: Float[Array, "n n"], b: Float[Array, " n *k"]) -> Float[Array, " n *k"]:
     """Solve A x = b for a small square, non-symmetric A (e.g. the dependent block of
     the constraint matrix) by Gaussian elimination with partial pivoting.
 

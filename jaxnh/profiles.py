@@ -260,7 +260,8 @@ class Sampled(Profile):
         if isinstance(knots, jax.core.Tracer) or isinstance(vals, jax.core.Tracer):
             raise ValueError("Sampled: ts and values must be concrete (the spline is prepared with NumPy)")
         if not np.all(np.isfinite(np.asarray(vals))):
-            raise ValueError(f"Sampled: values must be finite; non-finite at samples {np.nonzero(~np.isfinite(np.asarray(vals)))[0]}")
+            bad = np.nonzero(~np.isfinite(np.asarray(vals)))[0]
+            raise ValueError(f"Sampled: values must be finite; non-finite at samples {bad}")
         self.knots, self.values, self.kind = knots, vals, kind
         m = np.zeros(knots.shape[0]) if kind == "linear" else _natural_moments_np(np.asarray(knots), np.asarray(vals))
         self.moments = jnp.asarray(m, dtype=vals.dtype)
@@ -321,7 +322,9 @@ class Positive(Profile):
                 if np.any(v <= 0):
                     raise ValueError(f"Positive.of: the {name} of the profile must be > 0; got {v}")
                 return cls(eqx.tree_at(lambda p: getattr(p, name), profile, jnp.log(getattr(profile, name))))
-        raise TypeError(f"Positive.of: expected a Constant, PiecewiseLinear or CubicSpline; got {type(profile).__name__}")
+        raise TypeError(
+            f"Positive.of: expected a Constant, PiecewiseLinear or CubicSpline; got {type(profile).__name__}"
+        )
 
 
 class Bounded(Profile):

@@ -164,7 +164,8 @@ class RigidBodies(eqx.Module):
         out = list(self.inertias(p))
         if len(out) != n:
             raise ValueError(f"RigidBodies `inertias` returned {len(out)} (m, I) pairs for {n} bodies")
-        return [(jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I")) for k, (m, I) in enumerate(out)]
+        return [(jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I"))
+                for k, (m, I) in enumerate(out)]
 
     def velocities(self, q, qd, t, p):
         """Per body: mass-centre velocity ṙ (3,), m/s, and body angular velocity Ω (3,), rad/s."""

@@ -119,7 +119,8 @@ def test_small_kick_follows_the_linear_model(runs):
     lin = np.array([scipy.linalg.expm(A * t) @ np.array([0.0, 0.0, 0.01, 0.0]) for t in np.asarray(TS)])
     amp = np.abs(lin[:, :2]).max()
     np.testing.assert_allclose(np.asarray(sol.q)[:, [B.ROLL, B.STEER]], lin[:, :2], atol=1e-3 * amp)
-    np.testing.assert_allclose(np.asarray(sol.qd)[:, [B.ROLL, B.STEER]], lin[:, 2:], atol=1e-3 * np.abs(lin[:, 2:]).max())
+    np.testing.assert_allclose(np.asarray(sol.qd)[:, [B.ROLL, B.STEER]], lin[:, 2:],
+                               atol=1e-3 * np.abs(lin[:, 2:]).max())
 
 
 def test_self_stable_at_5_and_falls_at_2(runs):

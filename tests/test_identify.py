@@ -276,7 +276,8 @@ def good_rows(n=25, t=None):
 BAD_CSV = [
     ("t,phi1,M1,M2\n" + "\n".join(f"{0.01 * i},0,0,0" for i in range(25)), r"missing column\(s\) \['phi2'\]"),
     ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.09, np.arange(10, 24) * 0.01]), "repeated time"),
-    ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.05, np.arange(11, 25) * 0.01]), "decreasing time"),
+    ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.05, np.arange(11, 25) * 0.01]),
+     "decreasing time"),
     ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "nan,-0.1", 1), "non-finite values"),
     ("t,phi1,phi2,M1,M2\n" + good_rows(5), "too few samples: 5"),
     ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "abc,-0.1", 1), "'abc' is not a number"),

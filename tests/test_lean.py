@@ -49,7 +49,8 @@ def test_same_steps_as_diffrax(method):
     # selection sees a WrapTerm, not an ODETerm); with that dt0 given to both, the two loops must take
     # exactly the same steps and agree to rounding.
     d = diffrax.diffeqsolve(diffrax.ODETerm(oscillator), METHODS[method](), 0.0, 10.0, 0.01, Y0, args=4.0,
-                            saveat=diffrax.SaveAt(ts=TS), stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10))
+                            saveat=diffrax.SaveAt(ts=TS),
+                            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10))
     s = OSC_DT[method](Y0, 4.0, 1e-8, 1e-10)
     assert int(s.status) == 0
     assert int(s.stats["num_steps"]) == int(d.stats["num_steps"])
@@ -310,7 +311,8 @@ def test_variator_same_as_diffrax_with_tangents():
     # inside it, a limit that 0.1 s apart would bind on a few steps (and change them from diffrax's)
     ts = jnp.linspace(0.0, 10.0, 11)
     d = diffrax.diffeqsolve(diffrax.ODETerm(vf), DOP853(), ts[0], ts[-1], 0.01, y0, args=p,
-                            saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12))
+                            saveat=diffrax.SaveAt(ts=ts),
+                            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12))
     s2 = lean_solve(vf, y0, p, ts, method="dop853", rtol=1e-10, atol=1e-12, dt0=0.01, report="interpolate")
     assert int(s2.stats["num_steps"]) == int(d.stats["num_steps"])
     np.testing.assert_allclose(s2.ys, d.ys, rtol=1e-13, atol=1e-12)

@@ -87,7 +87,8 @@ def disc_linear():
     """Upright rolling at SPINS and the steady circular motion, linearised in one compile per method."""
     states = [D.upright(s, DISC_P) for s in SPINS] + [D.steady_state(LEAN, YAW_RATE, DISC_P)]
     q, qd = (jnp.stack(x) for x in zip(*states))
-    return {m: jax.jit(jax.vmap(lambda a, b: D.linearized(a, b, DISC_P, method=m)))(q, qd) for m in ("lagrange", "appell")}
+    return {m: jax.jit(jax.vmap(lambda a, b: D.linearized(a, b, DISC_P, method=m)))(q, qd)
+            for m in ("lagrange", "appell")}
 
 
 def test_disc_upright_lean_mode_and_stability_boundary(disc_linear):

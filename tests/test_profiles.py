@@ -99,7 +99,8 @@ def test_positive_and_bounded_keep_their_range():
 
 def test_trainable_marks_values_not_knots_or_period():
     s = CubicSpline(KNOTS, VALUES)
-    m = trainable({"J": jnp.ones(()), "U": s, "F": Fourier(1.0, sin=[0.1], period=2.0), "P": Positive.of(Constant(3.0))})
+    m = trainable({"J": jnp.ones(()), "U": s, "F": Fourier(1.0, sin=[0.1], period=2.0),
+                   "P": Positive.of(Constant(3.0))})
     assert m["J"] is True
     assert m["U"].values is True and m["U"].knots is False
     assert m["F"].mean and m["F"].sin and m["F"].cos and m["F"].period is False

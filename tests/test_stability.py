@@ -252,7 +252,8 @@ def test_gradient_through_stabilisation(stabilization):
     the two must agree to rounding, not only to the tolerance."""
     J2, h = 0.05, 1e-4
     g = float(jax.grad(final_speed)(J2, stabilization=stabilization))
-    fd = float((final_speed(J2 + h, stabilization=stabilization) - final_speed(J2 - h, stabilization=stabilization)) / (2 * h))
+    fd = float((final_speed(J2 + h, stabilization=stabilization) - final_speed(J2 - h, stabilization=stabilization))
+               / (2 * h))
     exact = float(jax.grad(exact_final_speed)(J2))
     print(f"{stabilization}: grad {g:.10g}, finite differences {fd:.10g}, closed form {exact:.10g}")
     # FD: truncation (h/J2)² ≈ 4e-6 relative, plus step-sequence noise ≈ rtol/h·|phi1'| ≈ 1e-4 rad/s
@@ -263,7 +264,8 @@ def test_gradient_through_stabilisation(stabilization):
         # the same steps (no sensitivity error control): the derivative of the same discrete solution
         same = float(jax.grad(final_speed)(J2, stabilization="projection",
                                            adjoint=nh.ForwardSensitivity(error_control=False)))
-        g_rev = float(jax.grad(final_speed)(J2, stabilization="projection", adjoint=diffrax.RecursiveCheckpointAdjoint()))
+        g_rev = float(jax.grad(final_speed)(J2, stabilization="projection",
+                                            adjoint=diffrax.RecursiveCheckpointAdjoint()))
         np.testing.assert_allclose(same, g_rev, rtol=1e-9)
 
 

@@ -72,7 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-max", type=float, default=None,
                    help="contact-force limit |λ| (tangential force × roller radius), N·m (default: the largest "
                         "|λ| along the embedded experiment)")
-    p.add_argument("--energy-max", type=float, default=None, help="energy the drives may deliver, J (default: no limit)")
+    p.add_argument("--energy-max", type=float, default=None,
+                   help="energy the drives may deliver, J (default: no limit)")
     p.add_argument("--power-max", type=float, default=None, help="peak drive power, W (default: no limit)")
     p.add_argument("--no-keep", action="store_true",
                    help="do not require J2 and the U21 knots to stay at least as precise as with the record's input")

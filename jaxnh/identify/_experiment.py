@@ -87,7 +87,9 @@ class ChannelNoise:
         if not (np.isfinite(self.std) and np.isfinite(self.step) and self.std >= 0 and self.step >= 0):
             raise ValueError(f"ChannelNoise: std and step must be finite and ≥ 0; got std={self.std}, step={self.step}")
         if self.total <= 0:
-            raise ValueError("ChannelNoise: std and step are both zero; a channel without noise has infinite information")
+            raise ValueError(
+                "ChannelNoise: std and step are both zero; a channel without noise has infinite information"
+            )
 
     @property
     def total(self) -> float:

@@ -192,7 +192,7 @@ class FitResult:
             lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
         lines.append(f"rms residual {self.rms_residual:.4g} ("
                      + ", ".join(f"{k} {v:.3g}" for k, v in self.rms_by_channel.items())
-                     + f"); noise used " + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
+                     + "); noise used " + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
                      + f"; s² = {self.chi2_dof:.3f}")
         lines.append(f"{self.optimizer}: {self.iterations} iterations, "
                      f"{'converged' if self.converged else 'NOT converged'} — {self.message}")
@@ -490,7 +490,10 @@ def fit(
     if lm and optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {optimizer!r}")
     if not lm and not hasattr(optimizer, "update"):
-        raise TypeError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {type(optimizer).__name__}")
+        raise TypeError(
+            f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; "
+            f"got {type(optimizer).__name__}"
+        )
     if differentiation not in ("auto", "forward", "reverse"):
         raise ValueError(f"differentiation must be 'auto', 'forward' or 'reverse'; got {differentiation!r}")
     if lm and differentiation == "reverse":
@@ -531,7 +534,8 @@ def fit(
         code = int(out["result"])
         stopped = code == 0
         why = "stopped on its tolerances" if stopped else (
-            f"iteration limit ({max_iterations}) reached" if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
+            f"iteration limit ({max_iterations}) reached"
+            if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
             else f"optimistix stopped: {_optx_message(code)}")
         opt_name = "levenberg-marquardt"
     else:

@@ -40,7 +40,8 @@ from ..equations.split import VelocitySplit
 from .parameters import Parametrisation
 
 
-__all__ = ["Observations", "Problem", "LevenbergMarquardt", "solve_least_squares", "column_scale", "value_and_jacobian", "statistics"]
+__all__ = ["Observations", "Problem", "LevenbergMarquardt", "solve_least_squares", "column_scale", "value_and_jacobian",
+           "statistics"]
 
 LM_TAU = 1e-3  # initial Levenberg–Marquardt damping relative to diag(JᵀJ)
 TRUST_HIGH_CUTOFF = 0.75  # actual/predicted decrease above which the trust region grows

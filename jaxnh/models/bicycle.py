@@ -168,7 +168,8 @@ FRONT_WHEEL = Wheel(_front_wheel_pose, _front_radius, axle=1, normal=(0.0, 0.0, 
 
 def bodies() -> RigidBodies:
     """The four bodies (rear wheel, rear frame, front frame, front wheel) under gravity."""
-    return RigidBodies(_poses, _inertias, gravity=_gravity, names=("rear wheel", "rear frame", "front frame", "front wheel"))
+    return RigidBodies(_poses, _inertias, gravity=_gravity,
+                       names=("rear wheel", "rear frame", "front frame", "front wheel"))
 
 
 def front_contact(q, t, p):
@@ -353,4 +354,5 @@ def capsize_speed(params=None, bracket=(5.0, 10.0), method: str = "lagrange", ma
     """Speed (m/s) where the capsize mode becomes unstable: its real eigenvalue
     crosses zero, where `a0 = det(g K0 + v² K2)` vanishes (root in `bracket`)."""
     mats, g = _matrices(params, method, matrices)
-    return scipy.optimize.brentq(lambda v: characteristic_polynomial(mats, v, g)[4], *bracket, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    return scipy.optimize.brentq(lambda v: characteristic_polynomial(mats, v, g)[4], *bracket, xtol=1e-15,
+                                 rtol=4 * np.finfo(float).eps)

@@ -95,7 +95,8 @@ def default_params(m=1.0, r=0.3, g=9.81) -> dict:
 def steady_spin(lean, yaw_rate, p):
     """Spin rate θ̇ (rad/s) of the steady motion at lean φ (rad) and yaw rate Ψ (rad/s)."""
     s, c = jnp.sin(lean), jnp.cos(lean)
-    w2 = (p["I1"] * yaw_rate**2 * s * c - p["m"] * p["g"] * p["r"] * s) / ((p["I3"] + p["m"] * p["r"] ** 2) * yaw_rate * c)
+    w2 = ((p["I1"] * yaw_rate**2 * s * c - p["m"] * p["g"] * p["r"] * s)
+          / ((p["I3"] + p["m"] * p["r"] ** 2) * yaw_rate * c))
     return w2 - yaw_rate * s
 
 

@@ -160,11 +160,11 @@ def closed_form(p: VariatorParams, ts, phi0=(0.0, 0.0), w0=1.0, *, max_panel: fl
     a = (ts[:-1, None] + (ts[1:] - ts[:-1])[:, None] * frac).reshape(-1)  # panel starts
     h = jnp.repeat(jnp.diff(ts) / P, P)
 
-    def I(t):
+    def inertia(t):  # I(t) above
         return p.J1 + p.J2 * p.U21(t) ** 2
 
     def F(t):
-        return (p.M1(t) + p.U21(t) * p.M2(t)) / jnp.sqrt(I(t))
+        return (p.M1(t) + p.U21(t) * p.M2(t)) / jnp.sqrt(inertia(t))
 
     Fv = jax.vmap(F)
     node_t = a[:, None] + h[:, None] * x  # (N, n)
@@ -173,8 +173,8 @@ def closed_form(p: VariatorParams, ts, phi0=(0.0, 0.0), w0=1.0, *, max_panel: fl
     inner_t = a[:, None, None] + h[:, None, None] * x[None, :, None] * x[None, None, :]
     inner = jnp.sum(wq * Fv(inner_t.reshape(-1)).reshape(inner_t.shape), axis=2)
     G_node = G_start[:, None] + h[:, None] * x * inner
-    c0 = jnp.sqrt(I(ts[0])) * w0
-    Iv = jax.vmap(I)
+    c0 = jnp.sqrt(inertia(ts[0])) * w0
+    Iv = jax.vmap(inertia)
     Uv = jax.vmap(p.U21)
     w_node = (c0 + G_node) / jnp.sqrt(Iv(node_t.reshape(-1)).reshape(node_t.shape))
     U_node = Uv(node_t.reshape(-1)).reshape(node_t.shape)
