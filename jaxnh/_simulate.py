@@ -278,19 +278,22 @@ def simulate(
             f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
         )
     if stepsize_controller is None:
-        if dtmax is None and step_ts is None and _hashable(rtol) and _hashable(atol):
-            stepsize_controller = _pid(rtol, atol)
+        # the tolerances are data (a new rtol reuses the compiled program unless it
+        # changes the default solver's order, see `_rtol_class`)
+        tol = dict(rtol=jnp.asarray(rtol, dtype=q0.dtype), atol=jnp.asarray(atol, dtype=q0.dtype))
+        if dtmax is None and step_ts is None:
+            stepsize_controller = diffrax.PIDController(**tol)
         else:
             stepsize_controller = diffrax.PIDController(
-                rtol=rtol, atol=atol, dtmax=dtmax,
-                step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
+                **tol, dtmax=dtmax, step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
             )
     if dt0 is not None and not is_traced(dt0) and not float(dt0) > 0:
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     traced = is_traced(params, q0, qd0, ts, form)
     sol = _run(
         mech, form, params, q0, qd0, ts, solver, stepsize_controller, saveat, event, progress_meter, adjoint,
-        dt0, record=record, max_steps=int(max_steps), rtol=float(rtol), graph_throw=bool(throw and traced),
+        dt0, record=record, max_steps=int(max_steps), rtol=_rtol_class(float(rtol)),
+        graph_throw=bool(throw and traced),
     )
     if throw and not traced and np.ndim(sol.status._value) == 0 and int(np.asarray(sol.status._value)) != 0:
         err = error_for(sol.status)
@@ -304,9 +307,18 @@ def simulate(
     return sol
 
 
-@functools.lru_cache(maxsize=64)
-def _pid(rtol, atol):
-    return diffrax.PIDController(rtol=rtol, atol=atol)
+def _rtol_class(rtol: float) -> float:
+    """A stand-in for `rtol` that makes every rtol-dependent choice of the compiled
+    program (`default_solver`'s order, the lean loop's tableau) the same way.
+
+    The choices compare rtol with the thresholds `DOP853_BELOW_RTOL` and
+    `DOPRI8_BELOW_RTOL_LOOPED` (a factor > 2 apart): half of the smallest
+    threshold above rtol (1 above all) lies on the same side of each. The
+    tolerance itself reaches the step control as an array, so tolerances
+    within one class share one compiled program.
+    """
+    above = [th for th in (DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED) if rtol < th]
+    return 0.5 * min(above) if above else 1.0
 
 
 def _is_jax_array(x, dtype) -> bool:
