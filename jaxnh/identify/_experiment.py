@@ -48,7 +48,7 @@ from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
 from .._simulate import simulate, STATUS
 from ..profiles import trainable
-from ._fit import FitResult, prepare
+from ._fit import _ProfileAt, estimate_band, prepare
 from .data import Record
 from .diagnostics import analyse, Identifiability
 from .parameters import resolve
@@ -172,8 +172,8 @@ class Experiment(eqx.Module):
         th = self.theta(params) if theta is None else theta
         p = pr.par.unpack(th[:self.n_params])
         q0, qd0 = pr.initial_state(th, self.ts[0], p)
-        return simulate(pr.mech, p, q0, qd0, self.ts, method=pr.method, solver=pr.solver, rtol=pr.rtol,
-                        atol=pr.atol, independent=pr.independent, max_steps=pr.max_steps,
+        return simulate(pr.mech, p, q0, qd0, self.ts, method=pr.method, solver=pr.solver,
+                        stepsize_controller=pr.controller(), independent=pr.independent, max_steps=pr.max_steps,
                         adjoint=ForwardSensitivity() if adjoint is None else adjoint, throw=False, record=record)
 
     def jacobian(self, params=None):
@@ -296,11 +296,11 @@ class Prediction:
 
     def band(self, fn, ts):
         """Predicted value and standard error of `fn(params, t)` at times ts (see `FitResult.band`)."""
-        return FitResult.band(self, fn, ts)
+        return estimate_band(self.problem, self.theta, self.cov_theta, self.null_directions, fn, ts)
 
     def profile_band(self, name: str, ts):
         """Predicted value and standard error of the free profile `name` (e.g. "U21") at times ts."""
-        return FitResult.profile_band(self, name, ts)
+        return self.band(_ProfileAt(name), ts)
 
     def summary(self) -> str:
         """A table of nominal values and predicted standard errors, and the diagnosis."""
@@ -406,8 +406,8 @@ def _hinge2(x):
 
 
 def _positive_power(exp: Experiment, params, sol):
-    mech = exp.problem.mech
-    Q = jax.vmap(lambda q, qd, t: mech.forces(q, qd, t, params))(sol.q, sol.qd, sol.ts) if mech.forces is not None \
+    forces = exp.problem.mech.forces
+    Q = jax.vmap(lambda q, qd, t: forces(q, qd, t, params))(sol.q, sol.qd, sol.ts) if forces is not None \
         else jnp.zeros_like(sol.qd)
     return jnp.sum(jnp.maximum(Q * sol.qd, 0.0), axis=1)
 

@@ -139,17 +139,7 @@ class FitResult:
         Returns:
             `(value, std)`, NumPy arrays like ts.
         """
-        ts = jnp.asarray(ts, dtype=jnp.result_type(float))
-        P = self.problem.par.size
-        val, G = (np.asarray(x) for x in _band_jacobian(self.problem.par, jnp.asarray(self.theta[:P]),
-                                                        ts.reshape(-1), fn))
-        C = self.cov_theta[:P, :P]
-        std = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-        if self.null_directions.size:
-            leak = np.abs(G @ self.null_directions[:, :P].T)
-            scale = np.maximum(np.abs(G).sum(axis=1), np.finfo(float).tiny)
-            std = np.where(np.any(leak > 1e-6 * scale[:, None], axis=1), np.inf, std)
-        return val.reshape(np.shape(ts)), std.reshape(np.shape(ts))
+        return estimate_band(self.problem, self.theta, self.cov_theta, self.null_directions, fn, ts)
 
     def profile_band(self, name: str, ts):
         """Value and standard error of the free profile `name` (e.g. "U21") at times ts."""
@@ -199,6 +189,21 @@ class FitResult:
         lines.append(self.lack_of_fit.message)
         lines += self.identifiability.messages
         return "\n".join(lines)
+
+
+def estimate_band(problem: Problem, theta, cov_theta, null_directions, fn, ts):
+    """`(value, std)` of `fn(params, t)` at times ts for the estimate θ with covariance `cov_theta`
+    (`FitResult.band`; a predicted `Prediction.band` too)."""
+    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
+    P = problem.par.size
+    val, G = (np.asarray(x) for x in _band_jacobian(problem.par, jnp.asarray(theta[:P]), ts.reshape(-1), fn))
+    C = cov_theta[:P, :P]
+    std = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
+    if null_directions.size:
+        leak = np.abs(G @ null_directions[:, :P].T)
+        scale = np.maximum(np.abs(G).sum(axis=1), np.finfo(float).tiny)
+        std = np.where(np.any(leak > 1e-6 * scale[:, None], axis=1), np.inf, std)
+    return val.reshape(np.shape(ts)), std.reshape(np.shape(ts))
 
 
 class _ProfileAt(eqx.Module):
@@ -317,7 +322,7 @@ def prepare(
                              f"of {n} samples; use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments")
     problem = Problem(
         mech=mech, par=par, q0_fixed=jnp.asarray(q0_fixed, f), observed=observed, independent=tuple(independent),
-        starts=starts, length=length, method=method, solver=fit_solver(solver, params, rtol), rtol=rtol, atol=atol,
+        starts=starts, length=length, method=method, solver=fit_solver(solver, params, rtol), tol=jnp.asarray([rtol, atol], f),
         max_steps=max_steps, differentiation=differentiation, defect_weight=defect_weight,
     )
     # starting initial state: data at t0 for the observed coordinates, rates from a local fit
@@ -484,8 +489,9 @@ def fit(
         A `FitResult`.
     """
     started = time.perf_counter()
-    if noise is None and getattr(data, "sigma", None):
-        noise = dict(data.sigma)  # the record's own noise levels (Record.sigma)
+    sigma = getattr(data, "sigma", None)
+    if noise is None and sigma:
+        noise = dict(sigma)  # the record's own noise levels (Record.sigma, a dict once checked)
     lm = isinstance(optimizer, str)
     if lm and optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {optimizer!r}")
@@ -505,8 +511,8 @@ def fit(
     if auto_rtol and rtol != "auto":
         raise ValueError(f"rtol must be a number or 'auto'; got {rtol!r}")
     rtol = AUTO_RTOL_START if auto_rtol else rtol
-    kw = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0, method=method,
-              solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
+    kw: dict[str, Any] = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0,
+                              method=method, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
     iterations = 0
     theta_ms = None
     if shooting > 1:
@@ -555,7 +561,7 @@ def fit(
             break
         factor = max(min(0.5 * ODE_ERROR_STD / err, 0.1), 1e-3)  # error ∝ tolerance; at least 10× tighter
         new_rtol = max(problem.rtol * factor, AUTO_RTOL_MIN)
-        problem = dataclasses.replace(problem, rtol=new_rtol, atol=problem.atol * new_rtol / problem.rtol)
+        problem = problem.with_tolerances(new_rtol, problem.atol * new_rtol / problem.rtol)
         if progress:
             print(f"  the ODE solver's error is {err:.2g} standard errors (> {ODE_ERROR_STD}): "
                   f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}")
@@ -596,7 +602,7 @@ def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
     their stated noise). Returns inf when a solve failed.
     """
     n, k = obs.y.shape
-    fine = dataclasses.replace(problem, rtol=problem.rtol * 1e-3, atol=problem.atol * 1e-3)
+    fine = problem.with_tolerances(problem.rtol * 1e-3, problem.atol * 1e-3)
     q_fine = np.asarray(_trajectory(fine, jnp.asarray(theta), obs.t))[:, list(problem.observed)]
     sigma = np.asarray(obs.sigma)
     w = np.asarray(r)[: n * k].reshape(n, k)

@@ -24,6 +24,7 @@ re-linearisation.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Optional
 
 import diffrax
@@ -74,7 +75,10 @@ class Problem(eqx.Module):
         starts: sample index where each shooting segment starts (static;
             `(0,)` for single shooting).
         length: samples per segment (static).
-        method, solver, rtol, atol, max_steps: passed to `simulate`.
+        method, solver, max_steps: passed to `simulate`.
+        tol: (rtol, atol) of the step control, as data: a fit that tightens
+            its tolerance (`fit(rtol="auto")`) reuses its compiled programs.
+            `rtol`, `atol` read them as floats; `with_tolerances` replaces them.
         differentiation: "forward" (Jacobian by `jax.jacfwd` with
             `jaxnh._sensitivity.ForwardSensitivity`) or "reverse"
             (`RecursiveCheckpointAdjoint`; for gradients of a scalar loss
@@ -90,11 +94,28 @@ class Problem(eqx.Module):
     length: int = eqx.field(static=True)
     method: str = eqx.field(static=True)
     solver: object = eqx.field(static=True)
-    rtol: float = eqx.field(static=True)
-    atol: float = eqx.field(static=True)
+    tol: jax.Array
     max_steps: int = eqx.field(static=True)
     differentiation: str = eqx.field(static=True)
     defect_weight: float = eqx.field(static=True)
+
+    @property
+    def rtol(self) -> float:
+        """Relative tolerance of the ODE solves (concrete problems only)."""
+        return float(self.tol[0])
+
+    @property
+    def atol(self) -> float:
+        """Absolute tolerance of the ODE solves, in the units of the state (concrete problems only)."""
+        return float(self.tol[1])
+
+    def with_tolerances(self, rtol, atol) -> "Problem":
+        """The same problem solved at other tolerances (the same compiled programs)."""
+        return dataclasses.replace(self, tol=jnp.asarray([rtol, atol], dtype=self.tol.dtype))
+
+    def controller(self) -> diffrax.PIDController:
+        """The step-size controller of the problem's solves (its tolerances traced)."""
+        return diffrax.PIDController(rtol=self.tol[0], atol=self.tol[1])
 
     # --- layout of θ --------------------------------------------------------
 
@@ -159,8 +180,9 @@ class Problem(eqx.Module):
 
     def _simulate(self, params, q0, qd0, ts, adjoint):
         sol = simulate(
-            self.mech, params, q0, qd0, ts, method=self.method, solver=self.solver, rtol=self.rtol,
-            atol=self.atol, independent=self.independent, max_steps=self.max_steps, adjoint=adjoint, throw=False,
+            self.mech, params, q0, qd0, ts, method=self.method, solver=self.solver,
+            stepsize_controller=self.controller(), independent=self.independent, max_steps=self.max_steps,
+            adjoint=adjoint, throw=False,
         )
         return sol.q, sol.qd
 
