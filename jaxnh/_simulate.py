@@ -12,7 +12,7 @@ than the compiled solve.
 from __future__ import annotations
 
 import functools
-from typing import Optional
+from typing import Any, Callable, Optional
 
 import diffrax
 import equinox as eqx
@@ -20,14 +20,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._checks import STIFF_ABOVE, diagnose_stall, initial_checks, spectral_radius
+from ._checks import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
 from ._mechanism import Mechanism
-from ._sensitivity import ForwardSensitivity, LeanIntegrator, choose_adjoint, diffrax_solve, lean_compatible
+from ._sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity, lean_compatible, LeanIntegrator
 from ._solution import DenseMotion, Solution
-from ._status import STATUS, error_for, is_traced, raise_in_graph
-from .equations import Appell, Formulation, Lagrange, as_formulation
+from ._status import error_for, is_traced, raise_in_graph, STATUS
+from .equations import Appell, as_formulation, Lagrange
 from .equations.base import as_data, as_float
 from .solvers import Tsit5
+
 
 __all__ = [
     "Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
@@ -176,7 +177,7 @@ def simulate(
     stepsize_controller: Optional[diffrax.AbstractStepSizeController] = None,
     event: Optional[diffrax.Event] = None,
     progress_meter: Optional[diffrax.AbstractProgressMeter] = None,
-    adjoint: Optional[diffrax.AbstractAdjoint] = None,
+    adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None,
     max_steps: int = 100_000,
     dt0=None,
     throw: bool = True,
@@ -259,9 +260,13 @@ def simulate(
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
     params = as_data(params, q0)  # one program per structure of params, not per value
     if ts.ndim != 1 or ts.shape[0] < 2:
-        raise ValueError(f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}")
+        raise ValueError(
+            f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}"
+        )
     if q0.dtype not in (jnp.float32, jnp.float64):
-        raise ValueError(f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays")
+        raise ValueError(
+            f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays"
+        )
     if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
         raise TypeError(
             f"solver must be a diffrax solver object, e.g. diffrax.Tsit5() or jaxnh.solvers.Tsit5(), or None for "
@@ -280,13 +285,15 @@ def simulate(
     if stepsize_controller is None:
         # the tolerances are data (a new rtol reuses the compiled program unless it
         # changes the default solver's order, see `_rtol_class`)
-        tol = dict(rtol=jnp.asarray(rtol, dtype=q0.dtype), atol=jnp.asarray(atol, dtype=q0.dtype))
-        if dtmax is None and step_ts is None:
-            stepsize_controller = diffrax.PIDController(**tol)
+        if dtmax is None and step_ts is None and _hashable(rtol) and _hashable(atol):
+            stepsize_controller = _pid(rtol, atol, q0.dtype)  # cached: no arrays made per call
         else:
-            stepsize_controller = diffrax.PIDController(
-                **tol, dtmax=dtmax, step_ts=None if step_ts is None else jnp.asarray(step_ts, dtype=q0.dtype),
-            )
+            tol: dict[str, Any] = dict(rtol=jnp.asarray(rtol, dtype=q0.dtype), atol=jnp.asarray(atol, dtype=q0.dtype))
+            stepsize_controller = diffrax.PIDController(**tol, dtmax=dtmax)
+            if step_ts is not None:
+                stepsize_controller = diffrax.ClipStepSizeController(
+                    stepsize_controller, step_ts=jnp.asarray(step_ts, dtype=q0.dtype)
+                )
     if dt0 is not None and not is_traced(dt0) and not float(dt0) > 0:
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     traced = is_traced(params, q0, qd0, ts, form)
@@ -305,6 +312,13 @@ def simulate(
                 err = type(err)(f"{err}\nDetails: {detail}", sol.status)
         raise err
     return sol
+
+
+@functools.lru_cache(maxsize=64)
+def _pid(rtol, atol, dtype):
+    # NumPy scalars: data to the compiled program (not a static constant), and safe to cache
+    # (a jnp array made while tracing would be a tracer)
+    return diffrax.PIDController(rtol=np.asarray(rtol, dtype=dtype), atol=np.asarray(atol, dtype=dtype))
 
 
 def _rtol_class(rtol: float) -> float:
@@ -388,7 +402,7 @@ def _input_sum(tree):
 class _UserEvent(eqx.Module):
     """A user's event condition, called with (q, qd) and params."""
 
-    cond_fn: object
+    cond_fn: Callable
 
     def __call__(self, t, y, args, **kwargs):
         form, params, _ = args
@@ -417,7 +431,8 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     y0 = form.state(q0r, qd0r, t0r, params)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
     if graph_throw:  # an invalid input raises before the solve: the solve depends on it, so it is never pruned
-        pre = STATUS.where(checked, STATUS.successful, check_status)
+        # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+        pre = STATUS.where(checked, STATUS.successful, check_status)  # pyright: ignore[reportArgumentType]
         pre = STATUS.where(increasing, pre, STATUS.bad_report_times)
         pre = STATUS.where(finite, pre, STATUS.non_finite_input)
         y0 = jax.tree_util.tree_map(lambda x: raise_in_graph(x, pre), y0)
@@ -463,7 +478,9 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, out_ts)
     out = {}
     if "multipliers" in record:
-        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(q, qd, out_ts)
+        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(
+            q, qd, out_ts
+        )
     if "energy" in record:
         out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, out_ts)
     if "residual" in record:
@@ -474,7 +491,7 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         stats["rhs_evaluations"] = stats["num_steps"] * stages
     # the solve's own outcome; a terminating event is a success (event_mask says which)
     result = STATUS.promote(result)
-    result = STATUS.where(result == STATUS.event_occurred, STATUS.successful, result)
+    result = STATUS.where(result == STATUS.event_occurred, STATUS.successful, result)  # pyright: ignore[reportArgumentType]
     if isinstance(form, Appell):
         result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
     if diagnose:
