@@ -172,7 +172,8 @@ def setup_compilation_cache(environ=None) -> str | None:
     import jax
 
     env = os.environ if environ is None else environ
-    if _active is not None and jax.config.jax_compilation_cache_dir == _active:
+    # jax.config's flags are attributes it creates at run time, which type checkers do not see
+    if _active is not None and jax.config.jax_compilation_cache_dir == _active:  # pyright: ignore[reportAttributeAccessIssue]
         return _active  # already set up by an earlier call
     if _user_configured(jax):
         return None
@@ -192,7 +193,7 @@ def setup_compilation_cache(environ=None) -> str | None:
     jax.config.update("jax_compilation_cache_dir", path)
     if (
         "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
-        and jax.config.jax_persistent_cache_min_compile_time_secs == JAX_DEFAULT_MIN_COMPILE_TIME
+        and jax.config.jax_persistent_cache_min_compile_time_secs == JAX_DEFAULT_MIN_COMPILE_TIME  # pyright: ignore[reportAttributeAccessIssue]
     ):
         jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)
     _reset_if_checked_without_cache()

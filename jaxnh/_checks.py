@@ -18,6 +18,8 @@ reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
 
 from __future__ import annotations
 
+from typing import Optional
+
 import jax
 import jax.numpy as jnp
 
@@ -53,7 +55,8 @@ def initial_checks(form, q, qd, t, params):
     eps = jnp.finfo(q.dtype).eps
     tiny = jnp.finfo(q.dtype).tiny
     pd = mass_matrix_ok(mech, q, qd, t, params)
-    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)
+    # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
     if form.m:
         def c(v):
@@ -89,7 +92,7 @@ def _mass_diagonal(mech, q, qd, t, params):
     return jnp.diag(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
 
 
-def diagnose_stall(form, y, t, params, status, start=None):
+def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
     """The status of a failed solve, refined by what is wrong at the last state reached.
 
     A solve that stalls (step limit, step size collapse) where the equations
@@ -109,13 +112,14 @@ def diagnose_stall(form, y, t, params, status, start=None):
     qd = jnp.where(finite, qd, 0.0)
     pd = mass_matrix_ok(form.mech, q, qd, t, params)
     if start is not None:
-        d0 = _mass_diagonal(form.mech, *start, params)
+        q0, qd0, t0 = start
+        d0 = _mass_diagonal(form.mech, q0, qd0, t0, params)
         d1 = _mass_diagonal(form.mech, q, qd, t, params)
         collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
         pd = pd & ~collapsed
     status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
     if isinstance(form, Appell) and form.m:
-        ratio = partition_quality(form.mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
+        ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
         status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
     return status
 

@@ -29,6 +29,7 @@ from typing import Callable, Optional
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
@@ -298,15 +299,19 @@ class HolonomicMechanism(eqx.Module):
             q, qd = full(qi, qdi, t, p)
             return self.kinetic(q, qd, t, p)
 
+        # The optional functions below are passed on only when the full mechanism has them.
         def acceleration_energy(qi, qdi, qddi, t, p):
+            assert self.acceleration_energy is not None
             q, qd = full(qi, qdi, t, p)
             return self.acceleration_energy(q, qd, self.accelerations(q, qd, qddi, t, p), t, p)
 
         def potential(qi, t, p):
+            assert self.potential is not None
             return self.potential(self.coordinates(qi, t, p), t, p)
 
         def forces(qi, qdi, t, p):
             # virtual work Q · δq with δq = J δq_I, J = [I; −G_D⁻¹ G_I]
+            assert self.forces is not None
             q, qd = full(qi, qdi, t, p)
             Q = jnp.asarray(self.forces(q, qd, t, p), qi.dtype)
             GD, GI, _ = self._jacobians(q, t, p)
@@ -314,6 +319,7 @@ class HolonomicMechanism(eqx.Module):
             return pick(Q, self.free(s)) + solve_square(GD, -GI).T @ pick(Q, self.dependent)
 
         def constraints(qi, qdi, t, p):
+            assert self.constraints is not None
             q, qd = full(qi, qdi, t, p)
             return self.constraints(q, qd, t, p)
 

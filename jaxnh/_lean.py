@@ -77,8 +77,8 @@ class LeanSolution(NamedTuple):
     ys: jax.Array
     status: jax.Array
     stats: dict
-    t_final: jax.Array = None
-    y_final: jax.Array = None
+    t_final: jax.Array
+    y_final: jax.Array
 
 
 # Exported programs (`jax.export`) that return a LeanSolution can be serialised.
@@ -96,6 +96,7 @@ def _lincomb(coeffs: Mapping[int, float], fs: Mapping[int, jax.Array]) -> jax.Ar
             continue
         term = float(c) * fs[j]
         acc = term if acc is None else acc + term
+    assert acc is not None, "a linear combination with every coefficient zero"
     return acc
 
 

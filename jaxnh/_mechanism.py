@@ -19,6 +19,7 @@ from typing import Callable, Optional, Sequence
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -108,8 +109,9 @@ class Mechanism(eqx.Module):
         parts = []
         if self.constraints is not None:
             parts.append(jnp.asarray(self.constraints(q, qd, t, params)))
-        if self.holonomic is not None:
-            _, gd = jax.jvp(lambda x, t_: jnp.asarray(self.holonomic(x, t_, params)), (q, jnp.asarray(t, q.dtype)),
+        holonomic = self.holonomic
+        if holonomic is not None:
+            _, gd = jax.jvp(lambda x, t_: jnp.asarray(holonomic(x, t_, params)), (q, jnp.asarray(t, q.dtype)),
                             (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)))
             parts.append(gd.astype(jnp.result_type(qd)))
         if not parts:
@@ -127,8 +129,9 @@ class Mechanism(eqx.Module):
         Q = jnp.zeros_like(qd)
         if self.forces is not None:
             Q = Q + jnp.asarray(self.forces(q, qd, t, params), dtype=qd.dtype)
-        if self.potential is not None:
-            Q = Q - jax.grad(lambda x: self.potential(x, t, params))(q)
+        potential = self.potential
+        if potential is not None:
+            Q = Q - jax.grad(lambda x: potential(x, t, params))(q)
         return Q
 
     def energy(self, q, qd, t, params):

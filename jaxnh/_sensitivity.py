@@ -90,7 +90,8 @@ def _flat_mask(error_mask, y0):
 
 
 def diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, *, t0, t1, max_steps, dt0,
-                  adjoint=diffrax.ForwardMode(), event=None, progress_meter=None, error_mask=None):
+                  adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode(), event=None, progress_meter=None,
+                  error_mask=None):
     """One `diffrax.diffeqsolve` of y' = vector_field(t, y, args) with `maps` around every step,
     the `error_mask` applied to a default-norm PID controller, and throw=False."""
     if maps is not None:
@@ -126,11 +127,11 @@ def no_host_callbacks():
     if old is None or old != "raise":
         yield
         return
-    errors.EQX_ON_ERROR = "nan"
+    setattr(errors, "EQX_ON_ERROR", "nan")  # a private attribute: set by name, as it is read above
     try:
         yield
     finally:
-        errors.EQX_ON_ERROR = old
+        setattr(errors, "EQX_ON_ERROR", old)
 
 
 def _default_norm(controller) -> bool:
@@ -162,7 +163,7 @@ class LeanIntegrator(eqx.Module):
         def f(t, z, a):
             return flat(vector_field(t, unravel(z), a))
 
-        pre = post = None
+        pre_step = post_step = None
         if maps is not None:
             def pre(t, z, a):
                 y, jumped = maps.pre(t, unravel(z), a)
@@ -172,8 +173,10 @@ class LeanIntegrator(eqx.Module):
                 y1, corr, reject, fail = maps.post(t0, unravel(z0_), t1, unravel(z1), a)
                 return flat(y1), None if corr is None else flat(corr), reject | fail
 
+            pre_step, post_step = pre, post
         sol = lean_solve(f, z0, args, ts, method=self.method, rtol=controller.rtol, atol=controller.atol,
-                         max_steps=max_steps, dt0=dt0, norm=norm, pre_step=pre, post_step=post, report=self.report)
+                         max_steps=max_steps, dt0=dt0, norm=norm, pre_step=pre_step, post_step=post_step,
+                         report=self.report)
         # the layout of SaveAt(subs=[SubSaveAt(ts=ts), SubSaveAt(t1=True)])
         zs = [sol.ys, sol.y_final[None]]
         out_ts = [ts, sol.t_final[None].astype(ts.dtype)]
@@ -190,11 +193,11 @@ def lean_compatible(controller) -> bool:
     """Whether a step-size controller is one the lean loop reproduces (a plain PIDController)."""
     import optimistix as optx
 
-    return (isinstance(controller, diffrax.PIDController) and controller.norm is optx.rms_norm
-            and controller.dtmin is None and controller.dtmax is None
-            and controller.pcoeff == 0 and controller.dcoeff == 0
-            and controller.icoeff == 1 and controller.factormin == 0.2 and controller.factormax == 10.0
-            and controller.safety == 0.9 and controller.error_order is None)
+    return bool(isinstance(controller, diffrax.PIDController) and controller.norm is optx.rms_norm
+                and controller.dtmin is None and controller.dtmax is None
+                and controller.pcoeff == 0 and controller.dcoeff == 0
+                and controller.icoeff == 1 and controller.factormin == 0.2 and controller.factormax == 10.0
+                and controller.safety == 0.9 and controller.error_order is None)
 
 
 def _plain(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, max_steps, dt0, error_mask,
@@ -295,6 +298,7 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
         ys, Ss = zip(*[jax.vmap(unravel)(z) for z in zs])
         ys, Ss = list(ys), list(Ss)
     else:
+        assert zs is not None  # simulate always saves at the report times
         ys, Ss = jax.vmap(unravel)(zs)
     # Tangent of the inputs as one vector, in the column order above.
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]

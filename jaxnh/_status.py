@@ -13,6 +13,7 @@ from __future__ import annotations
 import diffrax
 import equinox as eqx
 import jax
+import jax.core
 import numpy as np
 
 

@@ -51,10 +51,11 @@ class StepMaps(eqx.Module):
     (diffrax's `RESULTS.singular`, which the formulation explains).
     """
 
-    def pre(self, t, y, args):
+    # positional-only: the integrators call the maps positionally, and overrides name their states as they like
+    def pre(self, t, y, args, /) -> tuple[Any, jax.Array]:
         return y, jnp.asarray(False)
 
-    def post(self, t0, y0, t1, y1, args):
+    def post(self, t0, y0, t1, y1, args, /) -> tuple[Any, Optional[Any], jax.Array, jax.Array]:
         return y1, None, jnp.asarray(False), jnp.asarray(False)
 
 
@@ -160,7 +161,8 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
         y_error = jax.tree_util.tree_map(
             lambda e: jnp.where(reject, jnp.asarray(REJECT_ERROR, e.dtype) * (jnp.abs(e) + 1), e), y_error
         )
-        result = diffrax.RESULTS.where(fail, diffrax.RESULTS.singular, result)
+        # (equinox types Enumerations as enum.Enum: an item RESULTS inherits from optimistix looks like optimistix's)
+        result = diffrax.RESULTS.where(fail, diffrax.RESULTS.singular, result)  # pyright: ignore[reportArgumentType]
         return y1_mapped, y_error, dense_info, solver_state, result
 
     def func(self, terms, t0, y0, args):

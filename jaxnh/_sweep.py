@@ -67,7 +67,7 @@ def sweep(
     chunk_size: Optional[int] = None,
     mesh: Optional[Mesh] = None,
     progress: Union[None, bool, Callable[[int, int, float], Any]] = None,
-):
+) -> Any:
     """Evaluate `fn` over a batch and return the results in input order.
 
     `sweep(fn, *args)` equals `jax.vmap(fn, in_axes)(*args)` up to rounding
@@ -146,6 +146,7 @@ def sweep(
                 f"(shape {np.shape(leaves[first])}) but args{paths[i]} has shape {x.shape}"
             )
         host[i] = x
+    assert N is not None  # batched_ix is not empty
     if N == 0:
         raise ValueError(f"sweep: the batch is empty (args{paths[first]} has shape {np.shape(leaves[first])})")
 
@@ -192,6 +193,7 @@ def sweep(
         if pending is not None:  # fetch the previous chunk while this one runs
             collect(*pending)
         pending = (k, dev_out)
+    assert pending is not None  # n_chunks >= 1
     collect(*pending)
     return eqx.combine(out_host, out_static)
 

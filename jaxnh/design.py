@@ -38,6 +38,7 @@ from typing import Any, Callable, ClassVar, Optional
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optax

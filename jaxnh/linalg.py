@@ -14,6 +14,8 @@ their inputs.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
@@ -47,7 +49,7 @@ def cholesky(M: Float[Array, "s s"]) -> Float[Array, "s s"]:
     s = M.shape[0]
     if s > UNROLL_MAX:
         return jnp.linalg.cholesky(M)
-    L = [[None] * s for _ in range(s)]
+    L: list[list[Any]] = [[None] * s for _ in range(s)]  # entries filled in below
     for j in range(s):
         d = M[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
         L[j][j] = jnp.sqrt(d)
@@ -76,7 +78,7 @@ def solve_upper_t(L: Float[Array, "s s"], b: Float[Array, " s *k"]) -> Float[Arr
     s = L.shape[0]
     if s > UNROLL_MAX:
         return jsl.solve_triangular(L, b, lower=True, trans="T")
-    x = [None] * s
+    x: list[Any] = [None] * s  # filled in below
     for i in reversed(range(s)):
         acc = b[i]
         for k in range(i + 1, s):
@@ -135,16 +137,16 @@ def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[A
     for i in range(m):
         y.append(r[i] - sum(L[i][k] * y[k] for k in range(i)))
     z = [y[i] * dinv[i] for i in range(m)]
-    x = [None] * m
+    xs: list[Any] = [None] * m  # filled in below
     for i in reversed(range(m)):
-        x[i] = z[i] - sum(L[k][i] * x[k] for k in range(i + 1, m))
-    x = jnp.stack(x)
+        xs[i] = z[i] - sum(L[k][i] * xs[k] for k in range(i + 1, m))
+    x = jnp.stack(xs)
     if m == 1:
         return x  # a dropped single constraint already gives x = 0
     # Null space of G: columns L⁻ᵀ e_k for dropped k; project them out of x.
     basis = []
     for k in range(m):
-        n = [None] * m
+        n: list[Any] = [None] * m  # filled in below
         for i in reversed(range(m)):
             n[i] = (one if i == k else zero) - sum(L[j][i] * n[j] for j in range(i + 1, m))
         v = jnp.stack(n)
@@ -185,7 +187,7 @@ def solve_square(A: Float[Array, "n n"], b: Float[Array, " n *k"]) -> Float[Arra
             f = rows[i][k] / rows[k][k]
             rows[i] = rows[i] - f * rows[k]
             rhs[i] = rhs[i] - f * rhs[k]
-    x = [None] * n
+    x: list[Any] = [None] * n  # filled in below
     for i in reversed(range(n)):
         acc = rhs[i]
         for j in range(i + 1, n):

@@ -30,6 +30,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -51,7 +52,7 @@ class Profile(eqx.Module):
     trainable_fields: ClassVar[tuple] = ()
 
     @abc.abstractmethod
-    def __call__(self, t):
+    def __call__(self, t) -> jax.Array:
         """Value at time t."""
 
     def derivative(self, t):
@@ -160,10 +161,15 @@ class PiecewiseLinear(Profile):
         self.knots, self.values = _knots("PiecewiseLinear", knots, values)
 
     def __call__(self, t):
-        i = _interval(self.knots, t)
-        t0, t1 = self.knots[i], self.knots[i + 1]
-        s = jnp.clip((t - t0) / (t1 - t0), 0.0, 1.0)
-        return self.values[i] + s * (self.values[i + 1] - self.values[i])
+        return _linear(self.knots, self.values, t)
+
+
+def _linear(knots, values, t):
+    """The piecewise-linear interpolant through (knots, values) at t, constant beyond the ends."""
+    i = _interval(knots, t)
+    t0, t1 = knots[i], knots[i + 1]
+    s = jnp.clip((t - t0) / (t1 - t0), 0.0, 1.0)
+    return values[i] + s * (values[i + 1] - values[i])
 
 
 def _natural_moments(knots, values):
@@ -268,7 +274,7 @@ class Sampled(Profile):
 
     def __call__(self, t):
         if self.kind == "linear":
-            return PiecewiseLinear.__call__(self, t)
+            return _linear(self.knots, self.values, t)
         return _cubic(self.knots, self.values, self.moments, t)
 
 

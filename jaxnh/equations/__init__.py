@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 
 from .._mechanism import Mechanism
 from .appell import Appell
-from .base import Formulation, as_data, as_float, as_time, multipliers_from_accelerations
+from .base import as_data, as_float, as_time, Formulation, multipliers_from_accelerations
 from .lagrange import Lagrange
-from .split import VelocitySplit, choose_independent
+from .split import choose_independent, VelocitySplit
 from .substituted import Substituted
+
 
 METHODS = ("lagrange", "appell", "substituted")
 

@@ -40,8 +40,14 @@ from .._stepping import StepMaps
 from ..linalg import mm, solve_spd
 from .base import Formulation, multipliers_from_accelerations
 from .split import (
-    SWITCH_BELOW, VelocitySplit, best_partition, block_determinant, constraint_matrix, partition_quality,
-    resolve_independent, select,
+    best_partition,
+    block_determinant,
+    constraint_matrix,
+    partition_quality,
+    resolve_independent,
+    select,
+    SWITCH_BELOW,
+    VelocitySplit,
 )
 from .terms import mass_and_velocity_terms
 
@@ -74,7 +80,7 @@ class Appell(Formulation):
 
     @property
     def split(self) -> VelocitySplit:
-        return VelocitySplit(self.mech, self.s, self.m)
+        return VelocitySplit(self.bound_mech, self.s, self.m)
 
     @property
     def traced(self) -> bool:
@@ -90,7 +96,7 @@ class Appell(Formulation):
     def state(self, q, qd, t, params):
         if not self.traced:
             return (q, self.split.independent_of(qd, self.partition(None)))
-        perm, _ = best_partition(self.mech, q, qd, t, params, self.s, self.m)
+        perm, _ = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
         return (q, select(qd, perm, self.s - self.m)[0], perm.astype(q.dtype))
 
     def unpack(self, y, t, params):
@@ -101,7 +107,7 @@ class Appell(Formulation):
         return (1.0, 1.0, 0.0) if self.traced else None
 
     def _independent_accelerations(self, q, v, t, params, part):
-        mech = self.mech
+        mech = self.bound_mech
         qd, B, beta = self.split.velocities_and_rates(q, v, t, params, part)
         Q = mech.generalized_forces(q, qd, t, params)
         if mech.acceleration_energy is None:
@@ -119,13 +125,13 @@ class Appell(Formulation):
     def _state_partition(self, q, qd, t, params):
         if not self.traced:
             return self.partition(None)
-        return best_partition(self.mech, q, qd, t, params, self.s, self.m)[0]
+        return best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)[0]
 
     def accelerations(self, q, qd, t, params, multipliers: bool = False):
         part = self._state_partition(q, qd, t, params)
         v = self.split.independent_of(qd, part)
         qd, qdd, _ = self._independent_accelerations(q, v, t, params, part)
-        lam = multipliers_from_accelerations(self.mech, q, qd, qdd, t, params) if multipliers else None
+        lam = multipliers_from_accelerations(self.bound_mech, q, qd, qdd, t, params) if multipliers else None
         return qdd, lam
 
     def vector_field(self, t, y, params):
@@ -145,12 +151,13 @@ class Appell(Formulation):
             return jnp.asarray(True), STATUS.successful
         tiny = 1e3 * jnp.finfo(q.dtype).eps
         if self.traced:
-            _, vol = best_partition(self.mech, q, qd, t, params, self.s, self.m)
+            _, vol = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
             ok = vol > tiny
         else:
-            ratio, _, _ = partition_quality(self.mech, q, qd, t, params, self.partition(None), self.s - self.m)
+            ratio, _, _ = partition_quality(self.bound_mech, q, qd, t, params, self.partition(None), self.s - self.m)
             ok = ratio > tiny
-        return ok, STATUS.where(ok, STATUS.successful, STATUS.singular_split)
+        # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+        return ok, STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
 
 
 class _Partitioning(StepMaps):

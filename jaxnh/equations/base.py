@@ -21,13 +21,15 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import Optional
+from typing import Any, Optional
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
 from .._mechanism import Mechanism
+from .._stepping import StepMaps
 from ..linalg import mm, solve_psd_min_norm
 from .terms import constraint_terms, mass_and_velocity_terms
 
@@ -54,32 +56,39 @@ class Formulation(eqx.Module):
         """This formulation for `mech` with s coordinates and m constraints."""
         return dataclasses.replace(self, mech=mech, s=s, m=m)
 
+    @property
+    def bound_mech(self) -> Mechanism:
+        """The mechanism of a bound formulation (an error for an unbound one)."""
+        if self.mech is None:
+            raise ValueError(f"the {self.name!r} formulation is not bound to a mechanism yet (see `bind`)")
+        return self.mech
+
     @abc.abstractmethod
-    def state(self, q, qd, t, params):
+    def state(self, q, qd, t, params) -> Any:
         """Integrated state y from coordinates q (s,) and velocities qd (s,)."""
 
     @abc.abstractmethod
-    def unpack(self, y, t, params):
+    def unpack(self, y, t, params) -> tuple[jax.Array, jax.Array]:
         """Coordinates q (s,) and all velocities qd (s,) from the state y."""
 
     @abc.abstractmethod
-    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+    def accelerations(self, q, qd, t, params, multipliers: bool = False) -> tuple[jax.Array, Optional[jax.Array]]:
         """Accelerations qdd (s,) and, if asked, multipliers λ (m,), else None."""
 
     @abc.abstractmethod
-    def vector_field(self, t, y, params):
+    def vector_field(self, t, y, params) -> Any:
         """dy/dt for the integrated state y."""
 
-    def error_mask(self):
+    def error_mask(self) -> Optional[tuple[float, ...]]:
         """Static weights, one per leaf of the state: 1.0 for components in the step-size
         error control, 0.0 for bookkeeping; None for all."""
         return None
 
-    def step_maps(self):
+    def step_maps(self) -> Optional[StepMaps]:
         """A `jaxnh.StepMaps` applied around every step, or None."""
         return None
 
-    def check(self, q, qd, t, params):
+    def check(self, q, qd, t, params) -> tuple[jax.Array, diffrax.RESULTS]:
         """(ok, STATUS) of formulation-specific checks of an initial state (in the graph)."""
         from .._status import STATUS
 

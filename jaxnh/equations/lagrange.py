@@ -28,6 +28,8 @@ tolerance, unless stabilised:
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax.numpy as jnp
 
 from .._stepping import StepMaps
@@ -47,7 +49,7 @@ class Lagrange(Formulation):
             step (see the module docstring).
     """
 
-    baumgarte: object = None
+    baumgarte: Any = None  # a float or array (α, 1/s), "auto" before `simulate` resolves it, or None
     projection: bool = False
 
     name = "lagrange"
@@ -60,11 +62,11 @@ class Lagrange(Formulation):
             # reports between steps come from the dense output, which is not projected
             from .._consistent import project_velocities
 
-            return y[0], project_velocities(self.mech, y[0], y[1], t, params)
+            return y[0], project_velocities(self.bound_mech, y[0], y[1], t, params)
         return y
 
     def accelerations(self, q, qd, t, params, multipliers: bool = False):
-        mech = self.mech
+        mech = self.bound_mech
         M, h = mass_and_velocity_terms(mech, q, qd, t, params)
         L = cholesky(M)
         u = solve_lower(L, mech.generalized_forces(q, qd, t, params) - h)

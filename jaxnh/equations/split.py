@@ -33,8 +33,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._mechanism import check_independent, Mechanism
 from ..linalg import solve_square
-from .._mechanism import Mechanism, check_independent
+
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
 
@@ -221,7 +222,8 @@ class VelocitySplit(eqx.Module):
     def velocities_and_rates(self, q, v, t, params, part: Partition):
         """qd (s,), B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""
         if self.m == 0:
-            return place(v, v[:0], part), place(jnp.eye(self.k, dtype=q.dtype), jnp.zeros((0, self.k), q.dtype), part), jnp.zeros((self.s,), q.dtype)
+            B = place(jnp.eye(self.k, dtype=q.dtype), jnp.zeros((0, self.k), q.dtype), part)
+            return place(v, v[:0], part), B, jnp.zeros((self.s,), q.dtype)
         if not self.mech.nonlinear_constraints:
             return self._linear(q, v, t, params, part)
         qd = self.velocities(q, v, t, params, part)

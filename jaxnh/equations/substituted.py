@@ -32,7 +32,7 @@ class Substituted(Appell):
     name = "substituted"
 
     def _independent_accelerations(self, q, v, t, params, part):
-        mech, split = self.mech, self.split
+        mech, split = self.bound_mech, self.split
         qd, B, beta = split.velocities_and_rates(q, v, t, params, part)
 
         def T_star(q_, v_, t_):

@@ -186,6 +186,7 @@ def _run(args, files) -> int:
     if base.status != 0:
         print("jaxnh design: the baseline experiment cannot be simulated", file=sys.stderr)
         return 1
+    assert base.max_multiplier is not None  # the variator's Appell solve records its multiplier
     lam_max = args.lambda_max or float(np.max(base.max_multiplier))
     P = exp.n_params
     keep = None
@@ -220,6 +221,7 @@ def _run(args, files) -> int:
     m2 = np.asarray(jax.vmap(res.params.M2)(tj))
     sampled = V.VariatorParams(base_params.J1, base_params.J2, base_params.U21, Sampled(t, m1), Sampled(t, m2))
     des = predict(exp, sampled)
+    assert des.max_multiplier is not None
     loss = design_loss(exp, args.criterion, of=args.of, limits=limits)
     from ._experiment import evaluate_design
 

@@ -11,7 +11,7 @@ are relative errors.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import equinox as eqx
 import jax
@@ -62,7 +62,7 @@ class Parametrisation(eqx.Module):
         labels: one label per entry of θ ("J1", "U21[3]").
     """
 
-    params: object
+    params: Any
     names: tuple = eqx.field(static=True)
     sizes: tuple = eqx.field(static=True)
     shapes: tuple = eqx.field(static=True)

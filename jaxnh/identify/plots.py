@@ -8,6 +8,8 @@ the Figure; save it with `fig.savefig(path)` (and `plt.close(fig)` in loops).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from ._fit import FitResult
@@ -28,7 +30,7 @@ def _pyplot():
 
 def _figure(fig, rows: int, figsize, height_ratios):
     """`rows` stacked axes sharing x, in `fig` (cleared) or in a new pyplot figure."""
-    kw = dict(sharex=True, squeeze=False, gridspec_kw={"height_ratios": height_ratios})
+    kw: dict[str, Any] = dict(sharex=True, squeeze=False, gridspec_kw={"height_ratios": height_ratios})
     if fig is None:
         fig, ax = _pyplot().subplots(rows, 1, figsize=figsize, **kw)
     else:

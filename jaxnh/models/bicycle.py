@@ -33,6 +33,7 @@ linear equations `M q̈ + v C1 q̇ + (g K0 + v² K2) q = f` for q = (φ, δ).
 from __future__ import annotations
 
 import functools
+from typing import Callable
 
 import equinox as eqx
 import jax
@@ -41,7 +42,7 @@ import numpy as np
 import scipy.optimize
 
 from .._holonomic import HolonomicMechanism
-from .._linearize import linearize
+from .._linearize import Linearization, linearize
 from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
 
 
@@ -280,9 +281,14 @@ def linear_lean_steer(v, params=None, method: str = "lagrange"):
 ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 
 
-@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)
-def _linearized_speeds(speeds, params, method):
+def _linearized_speeds_uncompiled(speeds, params, method):
     return jax.vmap(lambda v: linearized(v, params, method))(speeds)
+
+
+# (equinox's type hints of filter_jit leave out the keyword arguments it passes on to jax.jit)
+_linearized_speeds: Callable[..., Linearization] = eqx.filter_jit(  # pyright: ignore[reportCallIssue]
+    _linearized_speeds_uncompiled, compiler_options=ONE_SHOT
+)
 
 
 def linearized_speeds(speeds, params=None, method: str = "lagrange"):
@@ -347,12 +353,16 @@ def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matri
         a4, a3, a2, a1, a0 = characteristic_polynomial(mats, v, g)
         return a1 * a2 * a3 - a0 * a3**2 - a4 * a1**2
 
-    return scipy.optimize.brentq(hurwitz, *bracket, xtol=1e-15, rtol=4 * np.finfo(float).eps)
+    lo, hi = bracket
+    # (SciPy has no type information: its return is inferred as that of full_output=False or True)
+    return scipy.optimize.brentq(hurwitz, lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps)  # pyright: ignore[reportReturnType]
 
 
 def capsize_speed(params=None, bracket=(5.0, 10.0), method: str = "lagrange", matrices=None) -> float:
     """Speed (m/s) where the capsize mode becomes unstable: its real eigenvalue
     crosses zero, where `a0 = det(g K0 + v² K2)` vanishes (root in `bracket`)."""
     mats, g = _matrices(params, method, matrices)
-    return scipy.optimize.brentq(lambda v: characteristic_polynomial(mats, v, g)[4], *bracket, xtol=1e-15,
-                                 rtol=4 * np.finfo(float).eps)
+    lo, hi = bracket
+    return scipy.optimize.brentq(  # pyright: ignore[reportReturnType]  (as in weave_speed)
+        lambda v: characteristic_polynomial(mats, v, g)[4], lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps
+    )

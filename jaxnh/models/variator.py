@@ -27,6 +27,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
 from .._mechanism import Mechanism
@@ -56,7 +57,7 @@ class VariatorParams(eqx.Module):
     M1: Profile
     M2: Profile
 
-    def __init__(self, J1, J2, U21, M1=0.0, M2=0.0):
+    def __init__(self, J1, J2, U21, M1: ArrayLike | Profile = 0.0, M2: ArrayLike | Profile = 0.0):
         f = jnp.result_type(float)
         self.J1 = jnp.asarray(J1, dtype=f)
         self.J2 = jnp.asarray(J2, dtype=f)
