@@ -1,5 +1,7 @@
 """Transformations through `simulate` and the errors bad input gets."""
 
+from typing import Any
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -79,7 +81,7 @@ def test_forward_mode_gradient_with_forward_adjoint():
 # --- bad input ------------------------------------------------------------------
 
 
-def good():
+def good() -> dict[str, Any]:
     return dict(mech=MECH, params=params(), q0=jnp.zeros(2), qd0=jnp.array([2.0, 2.0]), ts=TS)
 
 

@@ -23,12 +23,17 @@ from jaxnh._cache import (
 )
 
 
+def flag(name):
+    """The value of one of JAX's flags (attributes jax.config creates at run time, unknown to type checkers)."""
+    return getattr(jax.config, name)
+
+
 @pytest.fixture
 def clean_jax_cache_config():
     """Run a test that may call setup_compilation_cache and put JAX's flags back afterwards."""
     before = (
-        jax.config.jax_compilation_cache_dir,
-        jax.config.jax_persistent_cache_min_compile_time_secs,
+        flag("jax_compilation_cache_dir"),
+        flag("jax_persistent_cache_min_compile_time_secs"),
         _cache._active,
     )
     # start from JAX's defaults, whatever `import jaxnh` configured for this session
@@ -62,16 +67,16 @@ def test_created_private_even_under_umask_000(tmp_path, clean_jax_cache_config):
         os.umask(old)
     assert path == str(tmp_path / "deep" / "c")
     assert mode(path) == 0o700 and mode(tmp_path / "deep") == 0o700  # missing ancestors too (XDG: 0700)
-    assert jax.config.jax_compilation_cache_dir == path
+    assert flag("jax_compilation_cache_dir") == path
     # small programs are cached too: the write threshold is lowered from JAX's 1 s
-    assert jax.config.jax_persistent_cache_min_compile_time_secs == MIN_COMPILE_TIME_SECS
+    assert flag("jax_persistent_cache_min_compile_time_secs") == MIN_COMPILE_TIME_SECS
     # a second call keeps the same folder (the CLI calls it again after `import jaxnh` did)
     assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "other")}) == path
 
 
 def test_off_changes_nothing(tmp_path, clean_jax_cache_config):
     assert setup_compilation_cache({"JAXNH_CACHE_DIR": "off", "XDG_CACHE_HOME": str(tmp_path)}) is None
-    assert jax.config.jax_compilation_cache_dir is None
+    assert flag("jax_compilation_cache_dir") is None
     assert not (tmp_path / "jaxnh").exists()
 
 
@@ -79,22 +84,22 @@ def test_a_user_configured_cache_is_respected(tmp_path, clean_jax_cache_config):
     jax.config.update("jax_compilation_cache_dir", str(tmp_path / "mine"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.5)
     assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "c")}) is None
-    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "mine")
-    assert jax.config.jax_persistent_cache_min_compile_time_secs == 2.5
+    assert flag("jax_compilation_cache_dir") == str(tmp_path / "mine")
+    assert flag("jax_persistent_cache_min_compile_time_secs") == 2.5
     assert not (tmp_path / "c").exists()
 
 
 def test_user_threshold_kept(tmp_path, clean_jax_cache_config):
     env = {"JAXNH_CACHE_DIR": str(tmp_path / "c"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1.0"}
     assert setup_compilation_cache(env) == str(tmp_path / "c")
-    assert jax.config.jax_persistent_cache_min_compile_time_secs == 1.0
+    assert flag("jax_persistent_cache_min_compile_time_secs") == 1.0
 
 
 def refused(tmp_path, path, match):
     """setup_compilation_cache warns (naming the problem), returns None and leaves JAX's setting alone."""
     with pytest.warns(UnsafeCacheDirWarning, match=match):
         assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(path)}) is None
-    assert jax.config.jax_compilation_cache_dir is None
+    assert flag("jax_compilation_cache_dir") is None
 
 
 @pytest.mark.parametrize(

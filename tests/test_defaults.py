@@ -88,8 +88,10 @@ def test_unrolled_tsit5_takes_diffrax_tsit5_steps():
                                stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-9))
            for s in (diffrax.Tsit5(), Tsit5())]
     assert int(out[0].stats["num_steps"]) == int(out[1].stats["num_steps"])
+    ys = [o.ys for o in out]
+    assert ys[0] is not None and ys[1] is not None
     for k in ("x", "v"):
-        np.testing.assert_allclose(out[1].ys[k], out[0].ys[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ys[1][k], ys[0][k], rtol=0, atol=1e-12)
 
 
 def test_auto_adjoint_by_parameter_count():

@@ -19,6 +19,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def load_example(name):
     spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -50,7 +51,7 @@ def test_bounded_stays_inside_and_inverts():
     with pytest.raises(ValueError, match="upper > lower"):
         Bounded(inner, 1.0, 1.0)
     with pytest.raises(TypeError, match="inner must be a jaxnh Profile"):
-        Bounded(lambda t: t, 0.0, 1.0)
+        Bounded(lambda t: t, 0.0, 1.0)  # pyright: ignore[reportArgumentType]  (wrong on purpose)
 
 
 def test_optimize_holds_untrainable_leaves_and_returns_best():

@@ -181,6 +181,7 @@ def test_design_cli_refuses_bad_input(tmp_path, capsys):
 
 def _maker():
     spec = importlib.util.spec_from_file_location("make_variator_data", ROOT / "examples" / "make_variator_data.py")
+    assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

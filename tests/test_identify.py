@@ -356,5 +356,6 @@ def test_argument_errors_name_the_argument():
     par = Parametrisation(p, FREE, FREE)
     assert par.labels[:3] == ("J1", "J2", "U21[0]") and par.size == 9
     back = par.unpack(par.pack())
+    assert isinstance(p.U21, CubicSpline)
     np.testing.assert_allclose(back.U21.values, p.U21.values, rtol=1e-15)
     np.testing.assert_allclose(back.J2, p.J2, rtol=1e-15)

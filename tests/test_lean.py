@@ -7,6 +7,8 @@ a small multiple of the tolerance; fixed-step runs give the order of the method
 and of its dense output.
 """
 
+from typing import cast
+
 import diffrax
 import jax
 import jax.export
@@ -16,7 +18,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from jaxnh import _lean
-from jaxnh._lean import lean_solve
+from jaxnh._lean import lean_solve, LeanSolution
 from jaxnh.models import variator as V
 from jaxnh.solvers import DOP853, Tsit5
 
@@ -55,6 +57,7 @@ def test_same_steps_as_diffrax(method):
     assert int(s.status) == 0
     assert int(s.stats["num_steps"]) == int(d.stats["num_steps"])
     assert int(s.stats["num_accepted_steps"]) == int(d.stats["num_accepted_steps"])
+    assert d.ys is not None
     np.testing.assert_allclose(s.ys, d.ys, rtol=0, atol=1e-13)
 
 
@@ -218,11 +221,12 @@ def test_no_host_callbacks_and_exportable():
     for text in (jaxpr.lower(), hlo.lower()):
         assert "callback" not in text
     exp = jax.export.export(f)(Y0, 4.0)
-    s = exp.call(Y0, 4.0)
+    # (jax.export's type hints say that `call` returns an array: here it is the exported LeanSolution)
+    s = cast(LeanSolution, exp.call(Y0, 4.0))
     np.testing.assert_array_equal(s.ys, f(Y0, 4.0).ys)
     pytest.importorskip("flatbuffers")  # jax.export's serialisation needs it
     again = jax.export.deserialize(exp.serialize())
-    np.testing.assert_array_equal(again.call(Y0, 4.0).ys, s.ys)
+    np.testing.assert_array_equal(cast(LeanSolution, again.call(Y0, 4.0)).ys, s.ys)
     # under vmap too (a batched while loop, still no callbacks)
     fb = jax.jit(jax.vmap(lambda w2: lean_solve(oscillator, Y0, w2, TS, rtol=1e-8, atol=1e-10)))
     assert "callback" not in fb.lower(jnp.array([1.0, 4.0])).as_text().lower()
@@ -315,6 +319,7 @@ def test_variator_same_as_diffrax_with_tangents():
                             stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12))
     s2 = lean_solve(vf, y0, p, ts, method="dop853", rtol=1e-10, atol=1e-12, dt0=0.01, report="interpolate")
     assert int(s2.stats["num_steps"]) == int(d.stats["num_steps"])
+    assert d.ys is not None
     np.testing.assert_allclose(s2.ys, d.ys, rtol=1e-13, atol=1e-12)
 
     # forward sensitivity of the trajectory to J1 through the same loop, against diffrax's forward

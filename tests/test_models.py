@@ -8,6 +8,8 @@ assert. Linearisations are exact up to rounding (1e-10 relative leaves margin fo
 eigenvalue solver).
 """
 
+from typing import Any
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -21,7 +23,7 @@ from jaxnh._holonomic import HolonomicMechanism
 from jaxnh.models import disc as D, knife_edge as K, sleigh as S
 
 
-TOL = dict(rtol=1e-11, atol=1e-12, solver=diffrax.Dopri8())
+TOL: dict[str, Any] = dict(rtol=1e-11, atol=1e-12, solver=diffrax.Dopri8())
 
 # --- Chaplygin sleigh ------------------------------------------------------------------
 

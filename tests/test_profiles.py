@@ -122,7 +122,7 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="must be > 0"):
         Positive.of(CubicSpline([0.0, 1.0], [1.0, -1.0]))
     with pytest.raises(TypeError, match="inner must be a jaxnh Profile"):
-        Bounded(lambda t: t, 0.0, 1.0)
+        Bounded(lambda t: t, 0.0, 1.0)  # pyright: ignore[reportArgumentType]  (wrong on purpose)
 
 
 def test_jit_vmap_grad_through_a_spline():

@@ -28,6 +28,8 @@ where the partial time derivatives are taken at fixed (q, qd). For a scleronomic
 constraint forces do no work: d(T + V)/dt = Q·qd + ∂V/∂t.
 """
 
+from typing import Any
+
 import hypothesis.extra.numpy as hnp
 import jax
 import jax.numpy as jnp
@@ -147,7 +149,7 @@ def trajectories(c, q0, qd_guess, t0, independent):
     """Both formulations from one consistent state over HORIZON; integrated power balance."""
     qd0 = nh.consistent_velocities(MECH, q0, qd_guess, t0, c)
     ts = t0 + jnp.linspace(0.0, HORIZON, N_REPORT)
-    kw = dict(rtol=1e-10, atol=1e-12, max_steps=4096, throw=False)
+    kw: dict[str, Any] = dict(rtol=1e-10, atol=1e-12, max_steps=4096, throw=False)
     lag = nh.simulate(MECH, c, q0, qd0, ts, method="lagrange", record=("multipliers", "residual"), **kw)
     app = nh.simulate(MECH, c, q0, qd0, ts, method="appell", independent=independent, record=("residual",), **kw)
     h = jax.vmap(lambda a, b, s: energy_function(a, b, s, c))(lag.q, lag.qd, ts)
@@ -155,6 +157,7 @@ def trajectories(c, q0, qd_guess, t0, independent):
     dt = HORIZON / (N_REPORT - 1)
     work = dt / 3 * (P[0] + P[-1] + 4 * jnp.sum(P[1:-1:2]) + 2 * jnp.sum(P[2:-1:2]))  # Simpson
     scale_q = 1.0 + jnp.max(jnp.abs(lag.q)) + jnp.max(jnp.abs(lag.qd))
+    assert app.residual is not None and lag.residual is not None
     return dict(
         success=lag.success & app.success,
         traj_diff=jnp.maximum(jnp.max(jnp.abs(app.q - lag.q)), jnp.max(jnp.abs(app.qd - lag.qd))) / scale_q,

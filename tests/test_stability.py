@@ -172,6 +172,7 @@ def long_runs():
     out = {}
     for k, s in sols.items():
         assert bool(s.success), (k, s.message)
+        assert s.residual is not None
         out[k] = dict(
             res=np.abs(np.asarray(s.residual[:, 0])),
             err_q=np.max(np.abs(np.asarray(s.q) - q)) / np.max(np.abs(q)),
@@ -413,8 +414,9 @@ def test_stiff_damping_implicit_solver(stiff):
     the slow motion here, rtol 1e-10 gives 2e-5.
     """
     p, ts, ref = stiff
-    tol = dict(rtol=1e-10, atol=1e-12)
-    sol = run(p, ts, "lagrange", solver=diffrax.Kvaerno5(root_finder=optx.Newton(**tol)), **tol)
+    rtol, atol = 1e-10, 1e-12
+    sol = run(p, ts, "lagrange", solver=diffrax.Kvaerno5(root_finder=optx.Newton(rtol=rtol, atol=atol)), rtol=rtol,
+              atol=atol)
     assert bool(sol.success), sol.message
     steps = int(sol.stats["num_steps"])
     slow = np.max(np.abs(ref[0][5:]))  # the forced motion after the initial transient (≈ 5e-5 rad/s)
@@ -514,6 +516,7 @@ def test_redundant_constraints():
     assert np.max(np.abs(np.asarray(sol.q) - np.asarray(single.q))) < 1e-12
     assert np.max(np.abs(np.asarray(sol.qd) - np.asarray(single.qd))) < 1e-12
     res = np.asarray(sol.residual)
+    assert single.residual is not None
     # the residual U21 phi1' - phi2' is linear in qd with O(1) coefficients: it agrees as well as qd does
     np.testing.assert_allclose(res[:, 0], np.asarray(single.residual[:, 0]), rtol=0, atol=1e-12)
     # minimum-norm multipliers of the rows c and 2c share the force in proportion: λ2 = 2 λ1
@@ -537,6 +540,7 @@ def test_non_finite_parameter_in_a_batch():
         p = params(J2=J2)
         sol = nh.simulate(MECH, p, jnp.zeros(2), jnp.array([W0, W0]), ts, record=RECORD,
                           max_steps=MAX_STEPS, throw=False)
+        assert sol.energy is not None
         return sol.q, sol.energy, sol.status
 
     q, E, status = jax.vmap(one)(jnp.array([0.05, jnp.nan, 0.07]))

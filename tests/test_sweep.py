@@ -39,6 +39,7 @@ def run(p, w0):
     """One member: final speeds, peak |λ| (N·m), status."""
     qd0 = jnp.stack([w0, p.U21(0.0) * w0])
     sol = nh.simulate(MECH, p, jnp.zeros(2), qd0, TS, record=("multipliers",), throw=False)
+    assert sol.multipliers is not None
     return {"q": sol.q[-1], "qd": sol.qd[-1], "lam": jnp.max(jnp.abs(sol.multipliers)), "status": sol.status}
 
 
@@ -198,7 +199,7 @@ def test_explicit_mesh_argument():
     out = sweep(lambda v: v**2, np.arange(5.0), mesh=mesh, chunk_size=2)
     np.testing.assert_array_equal(out, np.arange(5.0) ** 2)
     with pytest.raises(TypeError, match="mesh must be a jax.sharding.Mesh"):
-        sweep(lambda v: v, np.arange(3.0), mesh="cpu")
+        sweep(lambda v: v, np.arange(3.0), mesh="cpu")  # pyright: ignore[reportArgumentType]  (wrong on purpose)
 
 
 MULTI_PROCESS_SCRIPT = textwrap.dedent(

@@ -3,6 +3,7 @@ checks in the graph give the same status eagerly and under jit/vmap; Appell's pa
 chosen and re-chosen inside the program; events, dense output and `ode` pass diffrax through."""
 
 import re
+from typing import Any
 
 import diffrax
 import jax
@@ -75,16 +76,15 @@ COS = nh.Mechanism(lambda q, qd, t, p: 0.5 * (0.02 * qd[0] ** 2 + 0.05 * qd[1] *
 @pytest.fixture(scope="module")
 def cos_runs():
     ts = jnp.array([0.0, 2 * jnp.pi])
-    kw = dict(rtol=1e-10, atol=1e-12)
-
     def run(qd0, method):
-        return nh.simulate(COS, {}, jnp.zeros(2), qd0, ts, method, **kw)
+        return nh.simulate(COS, {}, jnp.zeros(2), qd0, ts, method, rtol=1e-10, atol=1e-12)
 
     qd0 = jnp.array([[1.0, 1.5], [0.5, 0.75]])
-    out = {m: [run(x, m) for x in qd0] for m in ("appell", "lagrange")}
+    out: dict[str, Any] = {m: [run(x, m) for x in qd0] for m in ("appell", "lagrange")}
     out["jit"] = jax.jit(lambda x: run(x, "appell").q)(qd0[0])
     out["vmap"] = jax.vmap(lambda x: run(x, "appell").q)(qd0)
-    out["fixed"] = nh.simulate(COS, {}, jnp.zeros(2), qd0[0], ts, "appell", independent=(1,), throw=False, **kw)
+    out["fixed"] = nh.simulate(COS, {}, jnp.zeros(2), qd0[0], ts, "appell", independent=(1,), throw=False,
+                               rtol=1e-10, atol=1e-12)
     return out
 
 
