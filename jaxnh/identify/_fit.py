@@ -323,7 +323,8 @@ def prepare(
     problem = Problem(
         mech=mech, par=par, q0_fixed=jnp.asarray(q0_fixed, f), observed=observed, independent=tuple(independent),
         starts=starts, length=length, method=method, solver=fit_solver(solver, params, rtol),
-        tol=jnp.asarray([rtol, atol], f), max_steps=max_steps, differentiation=differentiation, defect_weight=defect_weight,
+        tol=jnp.asarray([rtol, atol], f), max_steps=max_steps, differentiation=differentiation,
+        defect_weight=defect_weight,
     )
     # starting initial state: data at t0 for the observed coordinates, rates from a local fit
     q_start, rates = _local_rates(data.t, y, 0)
