@@ -71,7 +71,7 @@ def jaxnh_costs():
     out = {}
     p = bicycle.default_params()
     start = clock()
-    lin = jax.jit(bicycle.linear_lean_steer)            # the model is defined at this point
+    lin = jax.jit(bicycle.linear_lean_steer)  # the model is defined at this point
     A = np.asarray(lin(5.0, p))
     out["state matrix, first call (trace + compile + run)"] = since(start)
     start = clock()
@@ -91,8 +91,19 @@ def jaxnh_costs():
     mech = bicycle.mechanism("lagrange")
 
     def simulate(solver=None, rtol=1e-8, atol=1e-10):
-        sol = nh.simulate(mech, p, q, qd, ts, method="lagrange", independent=bicycle.INDEPENDENT, rtol=rtol, atol=atol,
-                          solver=solver, record=("energy",))
+        sol = nh.simulate(
+            mech,
+            p,
+            q,
+            qd,
+            ts,
+            method="lagrange",
+            independent=bicycle.INDEPENDENT,
+            rtol=rtol,
+            atol=atol,
+            solver=solver,
+            record=("energy",),
+        )
         jax.block_until_ready(sol.q)
         return sol
 
@@ -135,8 +146,34 @@ def sympy_costs(queue, numeric=False):
     start = clock()
     q = me.dynamicsymbols("q1:9")  # x, y, yaw, roll, pitch, rear wheel, steer, front wheel
     u = me.dynamicsymbols("u1:9")
-    names = ["w", "c", "lam", "g", "rR", "mR", "IRxx", "IRyy", "xB", "zB", "mB", "IBxx", "IByy", "IBzz", "IBxz",
-             "xH", "zH", "mH", "IHxx", "IHyy", "IHzz", "IHxz", "rF", "mF", "IFxx", "IFyy"]
+    names = [
+        "w",
+        "c",
+        "lam",
+        "g",
+        "rR",
+        "mR",
+        "IRxx",
+        "IRyy",
+        "xB",
+        "zB",
+        "mB",
+        "IBxx",
+        "IByy",
+        "IBzz",
+        "IBxz",
+        "xH",
+        "zH",
+        "mH",
+        "IHxx",
+        "IHyy",
+        "IHzz",
+        "IHxz",
+        "rF",
+        "mF",
+        "IFxx",
+        "IFyy",
+    ]
     s = dict(zip(names, sm.symbols(names)))
     if numeric:
         s = {k: sm.Float(BENCHMARK[k]) for k in names}
@@ -149,14 +186,14 @@ def sympy_costs(queue, numeric=False):
     Fw = E.orientnew("Fw", "Axis", (q[7], E.y))
     O = me.Point("O")
     O.set_vel(N, 0)
-    P = O.locatenew("P", q[0] * N.x + q[1] * N.y)                       # rear contact
-    Rc = P.locatenew("Rc", -s["rR"] * L.z)                               # rear hub
+    P = O.locatenew("P", q[0] * N.x + q[1] * N.y)  # rear contact
+    Rc = P.locatenew("Rc", -s["rR"] * L.z)  # rear hub
     Bc = Rc.locatenew("Bc", s["xB"] * C.x + (s["zB"] + s["rR"]) * C.z)  # rear frame mass centre
-    S = Rc.locatenew("S", (s["w"] + s["c"]) * C.x + s["rR"] * C.z)      # steer axis meets the ground
+    S = Rc.locatenew("S", (s["w"] + s["c"]) * C.x + s["rR"] * C.z)  # steer axis meets the ground
     Hc = S.locatenew("Hc", (s["xH"] - s["w"] - s["c"]) * E.x + s["zH"] * E.z)
-    Fc = S.locatenew("Fc", -s["c"] * E.x - s["rF"] * E.z)               # front hub
-    down = E.y.cross(N.z.cross(E.y))                                     # in the wheel plane, towards the ground
-    Fn = Fc.locatenew("Fn", s["rF"] * down / sm.sqrt(down.dot(down)))    # front contact
+    Fc = S.locatenew("Fc", -s["c"] * E.x - s["rF"] * E.z)  # front hub
+    down = E.y.cross(N.z.cross(E.y))  # in the wheel plane, towards the ground
+    Fn = Fc.locatenew("Fn", s["rF"] * down / sm.sqrt(down.dot(down)))  # front contact
     qd_to_u = dict(zip([qi.diff(me.dynamicsymbols._t) for qi in q], u))
     for frame in (A, L, C, Rw, E, Fw):
         frame.set_ang_vel(N, frame.ang_vel_in(N).subs(qd_to_u))
@@ -175,10 +212,14 @@ def sympy_costs(queue, numeric=False):
     ]
     loads = [(b.masscenter, b.mass * s["g"] * N.z) for b in bodies]
     KM = me.KanesMethod(
-        N, q_ind=[q[i] for i in (0, 1, 2, 3, 5, 6, 7)], u_ind=[u[3], u[5], u[6]],
+        N,
+        q_ind=[q[i] for i in (0, 1, 2, 3, 5, 6, 7)],
+        u_ind=[u[3], u[5], u[6]],
         kd_eqs=[qi.diff() - ui for qi, ui in zip(q, u)],
-        q_dependent=[q[4]], configuration_constraints=[holonomic],
-        u_dependent=[u[0], u[1], u[2], u[4], u[7]], velocity_constraints=constraints,
+        q_dependent=[q[4]],
+        configuration_constraints=[holonomic],
+        u_dependent=[u[0], u[1], u[2], u[4], u[7]],
+        velocity_constraints=constraints,
     )
     KM.kanes_equations(bodies, loads)
     res["derive Kane's equations"] = since(start)
@@ -220,28 +261,41 @@ def _machine():
 
     import jax
 
-    return dict(cores=os.cpu_count(), load_average=list(os.getloadavg()), python=platform.python_version(),
-                jax=jax.__version__, date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()))
+    return dict(
+        cores=os.cpu_count(),
+        load_average=list(os.getloadavg()),
+        python=platform.python_version(),
+        jax=jax.__version__,
+        date=time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+    )
 
 
 def write_report(path, jx, sy, sympy_status, machine):
     """BICYCLE.md (Markdown) and results/bicycle_cost.json from the measured numbers."""
     import json
 
-    L = ["# Cost of the Whipple bicycle: jaxnh (autodiff) and SymPy (KanesMethod)", "",
-         "Written by `python benchmarks/bicycle_cost.py` (see its docstring for what is timed). "
-         f"Machine: {machine['cores']} cores, load average {machine['load_average'][0]:.1f} at the start "
-         f"(the machine is shared: wall times include waiting for a core, CPU times are all threads of the process); "
-         f"JAX {machine['jax']}, {machine['date']}.", ""]
+    L = [
+        "# Cost of the Whipple bicycle: jaxnh (autodiff) and SymPy (KanesMethod)",
+        "",
+        "Written by `python benchmarks/bicycle_cost.py` (see its docstring for what is timed). "
+        f"Machine: {machine['cores']} cores, load average {machine['load_average'][0]:.1f} at the start "
+        f"(the machine is shared: wall times include waiting for a core, CPU times are all threads of the process); "
+        f"JAX {machine['jax']}, {machine['date']}.",
+        "",
+    ]
     if jx:
         L += ["## jaxnh", "", "| step | wall s | CPU s |", "|---|---:|---:|"]
         L += [f"| {k} | {w:.2f} | {c:.2f} |" for k, w, c in _rows(jx)]
-        L += ["", f"* State matrix at 5 m/s: eigenvalues {np.array2string(jx['_eig5'], precision=10)}; "
-              f"max |jaxnh − published| = {jx['_eig5_error']:.1e}.",
-              f"* Nonlinear run (roll-rate kick 0.5 rad/s at 5 m/s, 5 s, rtol 1e-8, atol 1e-10): default solver "
-              f"{jx['_steps']} steps, max coordinate error {jx['_sim_error']:.1e} against a run at rtol 1e-12 "
-              f"(diffrax.Dopri8); diffrax.Tsit5 {jx['_steps_diffrax']} steps, error {jx['_sim_error_diffrax']:.1e}; "
-              f"energy drift {jx['_energy_drift']:.1e} J; final roll {jx['_final_roll']:+.6f} rad.", ""]
+        L += [
+            "",
+            f"* State matrix at 5 m/s: eigenvalues {np.array2string(jx['_eig5'], precision=10)}; "
+            f"max |jaxnh − published| = {jx['_eig5_error']:.1e}.",
+            f"* Nonlinear run (roll-rate kick 0.5 rad/s at 5 m/s, 5 s, rtol 1e-8, atol 1e-10): default solver "
+            f"{jx['_steps']} steps, max coordinate error {jx['_sim_error']:.1e} against a run at rtol 1e-12 "
+            f"(diffrax.Dopri8); diffrax.Tsit5 {jx['_steps_diffrax']} steps, error {jx['_sim_error_diffrax']:.1e}; "
+            f"energy drift {jx['_energy_drift']:.1e} J; final roll {jx['_final_roll']:+.6f} rad.",
+            "",
+        ]
     L += ["## SymPy", "", sympy_status, ""]
     if sy:
         L += ["| step | wall s | CPU s |", "|---|---:|---:|"]
@@ -250,15 +304,20 @@ def write_report(path, jx, sy, sympy_status, machine):
         if "_note" in sy:
             L += [f"* {sy['_note']}.", ""]
         if "_eig5" in sy:
-            L += [f"* Eigenvalues at 5 m/s {np.array2string(sy['_eig5'], precision=10)}; "
-                  f"max |SymPy − published| = {sy['_eig5_error']:.1e}.", ""]
+            L += [
+                f"* Eigenvalues at 5 m/s {np.array2string(sy['_eig5'], precision=10)}; "
+                f"max |SymPy − published| = {sy['_eig5_error']:.1e}.",
+                "",
+            ]
     pathlib.Path(path).write_text("\n".join(L))
     jpath = pathlib.Path(__file__).resolve().parent / "results" / "bicycle_cost.json"
     jpath.parent.mkdir(exist_ok=True)
 
     def clean(d):
-        return {k: (np.asarray(v).tolist() if not np.iscomplexobj(v) else [[z.real, z.imag] for z in np.ravel(v)])
-                for k, v in d.items()}
+        return {
+            k: (np.asarray(v).tolist() if not np.iscomplexobj(v) else [[z.real, z.imag] for z in np.ravel(v)])
+            for k, v in d.items()
+        }
 
     record = dict(jaxnh=clean(jx), sympy=clean(sy), sympy_status=sympy_status, machine=machine)
     jpath.write_text(json.dumps(record, indent=1))
@@ -271,10 +330,16 @@ def main():
     ap.add_argument("--quick", action="store_true", help="the same as --no-sympy")
     ap.add_argument("--no-jaxnh", action="store_true", help="SymPy only")
     ap.add_argument("--sympy-timeout", type=float, default=1200.0, help="seconds before giving up on SymPy")
-    ap.add_argument("--sympy-numeric", action="store_true",
-                    help="give SymPy the benchmark numbers from the start instead of symbolic parameters")
-    ap.add_argument("--out", default=str(pathlib.Path(__file__).resolve().parent / "BICYCLE.md"),
-                    help="Markdown report (default benchmarks/BICYCLE.md)")
+    ap.add_argument(
+        "--sympy-numeric",
+        action="store_true",
+        help="give SymPy the benchmark numbers from the start instead of symbolic parameters",
+    )
+    ap.add_argument(
+        "--out",
+        default=str(pathlib.Path(__file__).resolve().parent / "BICYCLE.md"),
+        help="Markdown report (default benchmarks/BICYCLE.md)",
+    )
     args = ap.parse_args()
     machine = _machine()
     print(f"CPU cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
@@ -283,9 +348,11 @@ def main():
         print("jaxnh (autodiff, jit):                                  wall s    CPU s")
         for k, w, c in _rows(jx):
             print(f"  {k:<54}{w:8.2f} {c:8.2f}")
-        print(f"  (eigenvalues at 5 m/s {jx['_eig5']}, |jaxnh − published| = {jx['_eig5_error']:.1e}; nonlinear run: "
-              f"{jx['_steps']} steps, error {jx['_sim_error']:.1e}; diffrax.Tsit5 {jx['_steps_diffrax']} steps, "
-              f"error {jx['_sim_error_diffrax']:.1e})")
+        print(
+            f"  (eigenvalues at 5 m/s {jx['_eig5']}, |jaxnh − published| = {jx['_eig5_error']:.1e}; nonlinear run: "
+            f"{jx['_steps']} steps, error {jx['_sim_error']:.1e}; diffrax.Tsit5 {jx['_steps_diffrax']} steps, "
+            f"error {jx['_sim_error_diffrax']:.1e})"
+        )
     res, status = {}, "Not run (`--no-sympy`)."
     if not (args.no_sympy or args.quick):
         try:
@@ -317,8 +384,10 @@ def run_sympy(args):
     kind = "numeric parameters" if args.sympy_numeric else "symbolic parameters"
     if proc.is_alive():
         proc.terminate()
-        status = (f"SymPy {sympy.__version__} (KanesMethod, same model, {kind}) did not finish within "
-                  f"{args.sympy_timeout:.0f} s (wall); the phases it completed are listed.")
+        status = (
+            f"SymPy {sympy.__version__} (KanesMethod, same model, {kind}) did not finish within "
+            f"{args.sympy_timeout:.0f} s (wall); the phases it completed are listed."
+        )
     else:
         status = f"SymPy {sympy.__version__} (KanesMethod, same model, {kind}):"
     print(status)

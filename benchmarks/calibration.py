@@ -52,9 +52,13 @@ def main(argv=None):
     ap.add_argument("--n", type=int, default=240, help="noise realisations (default 240)")
     ap.add_argument("--batch", type=int, default=60, help="realisations per vmapped batch (default 60)")
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--noise", choices=("encoder", "gaussian"), default="encoder",
-                    help="encoder: quantised readings as in the embedded record (default); gaussian: white "
-                         "Gaussian noise of the same standard deviation (a control)")
+    ap.add_argument(
+        "--noise",
+        choices=("encoder", "gaussian"),
+        default="encoder",
+        help="encoder: quantised readings as in the embedded record (default); gaussian: white "
+        "Gaussian noise of the same standard deviation (a control)",
+    )
     args = ap.parse_args(argv)
     mk = _maker()
     T = mk.TRUTH
@@ -90,7 +94,7 @@ def main(argv=None):
     outs, t_run = [], 0.0
     for i in range(0, args.n, args.batch):
         t0 = time.perf_counter()
-        o = jax.block_until_ready(batched(keys[i:i + args.batch]))
+        o = jax.block_until_ready(batched(keys[i : i + args.batch]))
         t_run += time.perf_counter() - t0
         outs.append([np.asarray(x) for x in o])
         print(f"  {min(i + args.batch, args.n)}/{args.n} fits, {t_run:.1f} s", flush=True)
@@ -159,8 +163,10 @@ def main(argv=None):
     ]
     for k, r in rows.items():
         mr = f"{100 * r['mean_relative_std']:.4f} %" if r["mean_relative_std"] is not None else "-"
-        lines.append(f"| {k} | {r['true']:.6g} | {100 * r['coverage_95']:.1f} % | {r['mean_z']:+.3f} | "
-                     f"{r['std_z']:.3f} | {mr} | {100 * r['empirical_relative_spread']:.4f} % |")
+        lines.append(
+            f"| {k} | {r['true']:.6g} | {100 * r['coverage_95']:.1f} % | {r['mean_z']:+.3f} | "
+            f"{r['std_z']:.3f} | {mr} | {100 * r['empirical_relative_spread']:.4f} % |"
+        )
     lines += [
         "",
         "z = (estimate − truth) / reported std; a calibrated fit has mean z ≈ 0, std z ≈ 1, coverage ≈ 95 %.",

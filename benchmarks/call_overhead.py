@@ -65,13 +65,19 @@ def main(argv=None) -> dict:
             f()
             times[name].append(time.perf_counter() - t0)
     med = {k: float(np.median(v)) * 1e3 for k, v in times.items()}
-    out = {"median_ms": med, "overhead_ms": med["simulate"] - med["compiled"],
-           "overhead_no_throw_ms": med["simulate, throw=False"] - med["compiled"],
-           "max_abs_difference_simulate_vs_compiled": err, "calls": args.calls}
+    out = {
+        "median_ms": med,
+        "overhead_ms": med["simulate"] - med["compiled"],
+        "overhead_no_throw_ms": med["simulate, throw=False"] - med["compiled"],
+        "max_abs_difference_simulate_vs_compiled": err,
+        "calls": args.calls,
+    }
     for k, v in med.items():
         print(f"{k:>24}: {v:.3f} ms per call (median of {args.calls})")
-    print(f"Python overhead of a repeat simulate call: {out['overhead_ms']:.3f} ms "
-          f"({out['overhead_no_throw_ms']:.3f} ms with throw=False); results equal to {err:.1e}")
+    print(
+        f"Python overhead of a repeat simulate call: {out['overhead_ms']:.3f} ms "
+        f"({out['overhead_no_throw_ms']:.3f} ms with throw=False); results equal to {err:.1e}"
+    )
     return out
 
 

@@ -72,8 +72,12 @@ SOLVERS: dict[str, Callable] = {
     "Kvaerno5": diffrax.Kvaerno5,
 }
 SOLVER_LABELS = {
-    "Tsit5": "diffrax Tsit5", "Tsit5u": "jaxnh Tsit5 (unrolled)", "Dopri5": "diffrax Dopri5",
-    "Dopri8": "diffrax Dopri8", "DOP853": "jaxnh DOP853", "Kvaerno5": "diffrax Kvaerno5",
+    "Tsit5": "diffrax Tsit5",
+    "Tsit5u": "jaxnh Tsit5 (unrolled)",
+    "Dopri5": "diffrax Dopri5",
+    "Dopri8": "diffrax Dopri8",
+    "DOP853": "jaxnh DOP853",
+    "Kvaerno5": "diffrax Kvaerno5",
 }
 
 
@@ -85,8 +89,9 @@ def tol_pair(rtol: float) -> tuple[float, float]:
 # --------------------------------------------------------------------------- compiled solves
 
 
-def jaxnh_solver_fn(mech, method, q0, qd0, params, ts, solver, *, independent=None, record=(), max_steps=100_000,
-                    adjoint=None):
+def jaxnh_solver_fn(
+    mech, method, q0, qd0, params, ts, solver, *, independent=None, record=(), max_steps=100_000, adjoint=None
+):
     """A jitted `f(params, y0, rtol, atol) -> (q, qd, num_steps, recorded)` around `simulate`.
 
     The tolerances are traced (they enter through the step-size controller), so
@@ -95,9 +100,21 @@ def jaxnh_solver_fn(mech, method, q0, qd0, params, ts, solver, *, independent=No
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
     def f(p, y0, rtol, atol):
-        sol = nh.simulate(mech, p, y0[0], y0[1], ts, method, solver=solver, record=tuple(record),
-                          independent=independent, max_steps=max_steps, adjoint=adjoint, throw=False,
-                          stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol))
+        sol = nh.simulate(
+            mech,
+            p,
+            y0[0],
+            y0[1],
+            ts,
+            method,
+            solver=solver,
+            record=tuple(record),
+            independent=independent,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            throw=False,
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        )
         out = {k: getattr(sol, k) for k in record}
         return sol.q, sol.qd, sol.stats["num_steps"], out
 
@@ -109,9 +126,17 @@ def hand_solver_fn(vector_field, unpack, ts, solver, max_steps=100_000):
 
     def f(p, y0, rtol, atol):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field), solver, ts[0], ts[-1], None, y0, args=p,
-            saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-            max_steps=max_steps, throw=False,
+            diffrax.ODETerm(vector_field),
+            solver,
+            ts[0],
+            ts[-1],
+            None,
+            y0,
+            args=p,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+            max_steps=max_steps,
+            throw=False,
         )
         q, qd = unpack(sol.ys, ts, p)
         return q, qd, sol.stats["num_steps"], {}
@@ -172,8 +197,9 @@ def paired_ratio(num, den) -> float:
 
 def max_error(q, qd, q_ref, qd_ref) -> float:
     """Max abs error over the report times, coordinates and velocities."""
-    return float(max(np.max(np.abs(np.asarray(q) - np.asarray(q_ref))),
-                     np.max(np.abs(np.asarray(qd) - np.asarray(qd_ref)))))
+    return float(
+        max(np.max(np.abs(np.asarray(q) - np.asarray(q_ref))), np.max(np.abs(np.asarray(qd) - np.asarray(qd_ref))))
+    )
 
 
 def time_at_error(points, target: float) -> float | None:
@@ -218,11 +244,21 @@ def machine() -> dict:
     import scipy
 
     return dict(
-        cpu=cpu, cores=os.cpu_count(), platform=platform.platform(), python=platform.python_version(),
-        jax=jax.__version__, jaxlib=jaxlib.__version__, diffrax=dfx.__version__, equinox=equinox.__version__,
-        numpy=np.__version__, scipy=scipy.__version__, jaxnh=nh.__version__,
-        devices=[str(d) for d in jax.devices()], load_average=list(os.getloadavg()),
-        xla_flags=os.environ.get("XLA_FLAGS", ""), pinned_cpu=PINNED_CPU,
+        cpu=cpu,
+        cores=os.cpu_count(),
+        platform=platform.platform(),
+        python=platform.python_version(),
+        jax=jax.__version__,
+        jaxlib=jaxlib.__version__,
+        diffrax=dfx.__version__,
+        equinox=equinox.__version__,
+        numpy=np.__version__,
+        scipy=scipy.__version__,
+        jaxnh=nh.__version__,
+        devices=[str(d) for d in jax.devices()],
+        load_average=list(os.getloadavg()),
+        xla_flags=os.environ.get("XLA_FLAGS", ""),
+        pinned_cpu=PINNED_CPU,
         date=datetime.datetime.now().isoformat(timespec="seconds"),
         jaxnh_revision=_revision(),
     )
@@ -241,10 +277,16 @@ def _revision() -> str:
 
     try:
         root = str(HERE.parent)
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root,
-                             timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "jaxnh"], capture_output=True,
-                               text=True, cwd=root, timeout=10).stdout.strip()
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root, timeout=10
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "jaxnh"],
+            capture_output=True,
+            text=True,
+            cwd=root,
+            timeout=10,
+        ).stdout.strip()
         return (rev or "unknown") + (" + uncommitted changes in jaxnh/" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"

@@ -44,6 +44,7 @@ def child(kind: str) -> dict:
 
     import jaxnh as nh
     from jaxnh.models import variator as V
+
     import_s = time.perf_counter() - t0
     mech, p = V.mechanism(), V.default_params()
     ts = jnp.linspace(0.0, 10.0, 101)
@@ -60,6 +61,7 @@ def child(kind: str) -> dict:
         kw["method"] = "lagrange"
 
     if kind.startswith("simulate"):
+
         def call():
             return jax.block_until_ready(nh.simulate(mech, p, q0, qd0, ts, **kw).q)
     elif kind == "hand":
@@ -69,16 +71,30 @@ def child(kind: str) -> dict:
 
         @jax.jit
         def f(p_, y0):
-            return diffrax.diffeqsolve(diffrax.ODETerm(eq9_jax), diffrax.Tsit5(), ts[0], ts[-1], None, y0, args=p_,
-                                       saveat=diffrax.SaveAt(ts=ts), max_steps=100_000,
-                                       stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10)).ys
+            return diffrax.diffeqsolve(
+                diffrax.ODETerm(eq9_jax),
+                diffrax.Tsit5(),
+                ts[0],
+                ts[-1],
+                None,
+                y0,
+                args=p_,
+                saveat=diffrax.SaveAt(ts=ts),
+                max_steps=100_000,
+                stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
+            ).ys
 
         def call():
             return jax.block_until_ready(f(p, (q0, qd0[:1])))
     elif kind == "batch":
         w = jnp.linspace(0.5, 1.5, 1000)
-        f = jax.jit(jax.vmap(lambda w_: nh.simulate(mech, p, q0, jnp.stack([w_, w_ * p.U21(0.0)]), ts, independent=(0,),
-                                                    throw=False).q))
+        f = jax.jit(
+            jax.vmap(
+                lambda w_: (
+                    nh.simulate(mech, p, q0, jnp.stack([w_, w_ * p.U21(0.0)]), ts, independent=(0,), throw=False).q
+                )
+            )
+        )
 
         def call():
             return jax.block_until_ready(f(w))
@@ -99,8 +115,14 @@ def child(kind: str) -> dict:
 
     _, cpu1, wall1 = C.timed(call)
     _, cpu2, wall2 = C.timed(call)
-    return dict(kind=kind, import_s=import_s, first={"cpu": cpu1, "wall": wall1}, second={"cpu": cpu2, "wall": wall2},
-                compile={"cpu": cpu1 - cpu2, "wall": wall1 - wall2}, load_average=list(os.getloadavg()))
+    return dict(
+        kind=kind,
+        import_s=import_s,
+        first={"cpu": cpu1, "wall": wall1},
+        second={"cpu": cpu2, "wall": wall2},
+        compile={"cpu": cpu1 - cpu2, "wall": wall1 - wall2},
+        load_average=list(os.getloadavg()),
+    )
 
 
 def run(quick: bool) -> dict:
@@ -108,8 +130,12 @@ def run(quick: bool) -> dict:
     for label, kind in SCENARIOS.items():
         if quick and kind not in QUICK:
             continue
-        out = subprocess.run([sys.executable, "-m", "benchmarks.compile_time", "--child", kind],
-                             capture_output=True, text=True, cwd=str(C.HERE.parent))
+        out = subprocess.run(
+            [sys.executable, "-m", "benchmarks.compile_time", "--child", kind],
+            capture_output=True,
+            text=True,
+            cwd=str(C.HERE.parent),
+        )
         if out.returncode != 0:
             rows.append(dict(label=label, kind=kind, error=out.stderr[-2000:]))
             C.log(f"  {label}: FAILED\n{out.stderr[-2000:]}")
@@ -117,8 +143,10 @@ def run(quick: bool) -> dict:
         row = json.loads(out.stdout.strip().splitlines()[-1])
         row["label"] = label
         rows.append(row)
-        C.log(f"  {label:<62s} first call {row['first']['wall']:6.2f} s wall / {row['first']['cpu']:6.2f} s cpu;"
-              f" compile {row['compile']['wall']:6.2f} s wall / {row['compile']['cpu']:6.2f} s cpu")
+        C.log(
+            f"  {label:<62s} first call {row['first']['wall']:6.2f} s wall / {row['first']['cpu']:6.2f} s cpu;"
+            f" compile {row['compile']['wall']:6.2f} s wall / {row['compile']['cpu']:6.2f} s cpu"
+        )
     return dict(rows=rows, quick=quick)
 
 

@@ -59,7 +59,7 @@ _FREE = {"parameter", "tuple", "get-tuple-element", "bitcast", "constant"}
 def kernels(compiled) -> dict:
     """Opcode -> count of the run-time instructions in the compiled entry computation."""
     text = compiled.as_text()
-    entry = text[text.index("ENTRY"):]
+    entry = text[text.index("ENTRY") :]
     entry = entry[: entry.index("\n}")]
     counts = {}
     for op in re.findall(r"=\s*\S+\s+([a-z][a-z0-9-]*)\(", entry):
@@ -123,8 +123,16 @@ def measure(problem: str, rounds: int, quick: bool) -> dict:
         fields[method] = (lambda form: lambda t, y, p: form.vector_field(t, y, p))(form)
     fields["hand"], states["hand"] = hand_vf, hand_y0
 
-    row = dict(problem=problem, evaluations_per_loop=n_eval, kernels={}, field={}, step={}, steps={}, compile={},
-               step_kernels={})
+    row = dict(
+        problem=problem,
+        evaluations_per_loop=n_eval,
+        kernels={},
+        field={},
+        step={},
+        steps={},
+        compile={},
+        step_kernels={},
+    )
     calls = {}
     for k in fields:
         compiled = jax.jit(fields[k]).lower(t, states[k], p).compile()
@@ -141,29 +149,34 @@ def measure(problem: str, rounds: int, quick: bool) -> dict:
             if k == "hand":
                 fn, y0 = C.hand_solver_fn(hand_vf, hand_unpack, ts, C.SOLVERS[sname]()), hand_y0
             else:
-                fn, y0 = C.jaxnh_solver_fn(mech, k, q0, qd0, p, ts, C.SOLVERS[sname](),
-                                           independent=ind if k == "appell" else None)
+                fn, y0 = C.jaxnh_solver_fn(
+                    mech, k, q0, qd0, p, ts, C.SOLVERS[sname](), independent=ind if k == "appell" else None
+                )
             compiled, row["compile"][f"{k}/{sname}"] = C.compile_aot(fn, p, y0, R, A)
             row["steps"][f"{k}/{sname}"] = int(compiled(p, y0, R, A)[2])
             if sname == "Tsit5u":  # one loop body per step (diffrax's Tsit5 nests a loop over stages)
                 row["step_kernels"][k] = loop_kernels(compiled)
-            calls[f"{k}/{sname}"] = (lambda c=compiled, y0=y0: jax.block_until_ready(c(p, y0, R, A)))
+            calls[f"{k}/{sname}"] = lambda c=compiled, y0=y0: jax.block_until_ready(c(p, y0, R, A))
         # the loop alone: a trivial field in the appell state layout, same report times and tolerances
         fn = C.hand_solver_fn(_oscillator, lambda ys, ts, p: ys, ts, C.SOLVERS[sname]())
         compiled, row["compile"][f"trivial/{sname}"] = C.compile_aot(fn, p, states["appell"], R, A)
         row["steps"][f"trivial/{sname}"] = int(compiled(p, states["appell"], R, A)[2])
         if sname == "Tsit5u":
             row["step_kernels"]["trivial"] = loop_kernels(compiled)
-        calls[f"trivial/{sname}"] = (lambda c=compiled: jax.block_until_ready(c(p, states["appell"], R, A)))
+        calls[f"trivial/{sname}"] = lambda c=compiled: jax.block_until_ready(c(p, states["appell"], R, A))
         times = C.interleave(calls, rounds=rounds)
         for k, v in times.items():
             row["step"][k] = C.median(v["cpu"]) / row["steps"][k]
     for k in fields:
-        C.log(f"  {problem}/{k}: field {row['field'][k] * 1e9:.0f} ns, {sum(row['kernels'][k].values())} kernels; "
-              + f"{row['step_kernels'][k]} kernels per Tsit5u step; "
-              + "  ".join(f"{s} step {row['step'][f'{k}/{s}'] * 1e6:.2f} us" for s in solvers))
-    C.log(f"  trivial field: {row['step_kernels']['trivial']} kernels per Tsit5u step; " + "  ".join(
-        f"{s} step {row['step'][f'trivial/{s}'] * 1e6:.2f} us" for s in solvers))
+        C.log(
+            f"  {problem}/{k}: field {row['field'][k] * 1e9:.0f} ns, {sum(row['kernels'][k].values())} kernels; "
+            + f"{row['step_kernels'][k]} kernels per Tsit5u step; "
+            + "  ".join(f"{s} step {row['step'][f'{k}/{s}'] * 1e6:.2f} us" for s in solvers)
+        )
+    C.log(
+        f"  trivial field: {row['step_kernels']['trivial']} kernels per Tsit5u step; "
+        + "  ".join(f"{s} step {row['step'][f'trivial/{s}'] * 1e6:.2f} us" for s in solvers)
+    )
     return row
 
 

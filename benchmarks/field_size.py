@@ -51,7 +51,7 @@ def hlo_instructions(text: str) -> int:
 
 
 def entry_kernels(text: str) -> int:
-    entry = text[text.index("ENTRY"):]
+    entry = text[text.index("ENTRY") :]
     entry = entry[: entry.index("\n}")]
     return sum(1 for op in re.findall(r"=\s*\S+\s+([a-z][a-z0-9-]*)\(", entry) if op not in _FREE)
 
@@ -78,8 +78,11 @@ def fields(problem: str):
     for method in methods:
         form = formulation(mech, method, q0, qd0, ts[0], p, None if method == "lagrange" else ind)
         y0, unravel = ravel_pytree(form.state(q0, qd0, ts[0], p))
-        out[method] = ((lambda form, unravel: lambda t, y, p: ravel_pytree(form.vector_field(t, unravel(y), p))[0])(
-            form, unravel), y0, p)
+        out[method] = (
+            (lambda form, unravel: lambda t, y, p: ravel_pytree(form.vector_field(t, unravel(y), p))[0])(form, unravel),
+            y0,
+            p,
+        )
     y0, unravel = ravel_pytree(hand_state)
     out["hand"] = ((lambda unravel: lambda t, y, p: ravel_pytree(hand(t, unravel(y), p))[0])(unravel), y0, p)
     return out, ts
@@ -116,9 +119,13 @@ def measure(problem: str, quick: bool) -> dict:
         lowered = jax.jit(f).lower(t, y0, p)
         compiled = lowered.compile()
         text = compiled.as_text()
-        rows[name] = dict(state=int(y0.shape[0]), jaxpr_eqns=len(jaxpr.jaxpr.eqns),
-                          stablehlo_ops=stablehlo_ops(lowered.as_text()), hlo_instructions=hlo_instructions(text),
-                          kernels=entry_kernels(text))
+        rows[name] = dict(
+            state=int(y0.shape[0]),
+            jaxpr_eqns=len(jaxpr.jaxpr.eqns),
+            stablehlo_ops=stablehlo_ops(lowered.as_text()),
+            hlo_instructions=hlo_instructions(text),
+            kernels=entry_kernels(text),
+        )
         solve = jax.jit(lambda y0, p, f=f: lean_solve(f, y0, p, ts, method="dop853", rtol=1e-10, atol=1e-12))
         sc = solve.lower(y0, p).compile()
         sol = sc(y0, p)
@@ -152,26 +159,62 @@ def section(R: dict | None) -> list:
     """RESULTS.md lines (called by benchmarks/report.py)."""
     if not R:
         return []
-    L = ["## Size and cost of a vector field, per formulation (issue 16, item 3)", "",
-         "One evaluation of each formulation's vector field, compiled alone: jaxpr equations, StableHLO operations "
-         "of the lowered module, HLO instructions of the optimised module (fusion bodies included) and run-time "
-         "kernels of its entry computation; CPU time per evaluation (in a `fori_loop` that perturbs t and y) and "
-         "per state in a `vmap` batch of 1000; per step of a whole lean-loop solve (DOP853, rtol 1e-10; a step is "
-         "12 evaluations plus the loop). Ratios to the hand-written field are medians of per-round ratios; "
-         "`python -m benchmarks.field_size`. The target of issue 16 is derived ≤ 1.3× hand-written at equal steps "
-         "(last column). \"substituted\" is the paper's wrong eq. (16): a different ODE.", ""]
+    L = [
+        "## Size and cost of a vector field, per formulation (issue 16, item 3)",
+        "",
+        "One evaluation of each formulation's vector field, compiled alone: jaxpr equations, StableHLO operations "
+        "of the lowered module, HLO instructions of the optimised module (fusion bodies included) and run-time "
+        "kernels of its entry computation; CPU time per evaluation (in a `fori_loop` that perturbs t and y) and "
+        "per state in a `vmap` batch of 1000; per step of a whole lean-loop solve (DOP853, rtol 1e-10; a step is "
+        "12 evaluations plus the loop). Ratios to the hand-written field are medians of per-round ratios; "
+        "`python -m benchmarks.field_size`. The target of issue 16 is derived ≤ 1.3× hand-written at equal steps "
+        '(last column). "substituted" is the paper\'s wrong eq. (16): a different ODE.',
+        "",
+    ]
     for problem, rows in R["problems"].items():
         L += [f"### {problem}", ""]
         tr = []
         for name, r in rows.items():
-            tr.append([name, str(r["state"]), str(r["jaxpr_eqns"]), str(r["stablehlo_ops"]), str(r["hlo_instructions"]),
-                       str(r["kernels"]), f"{r['per_eval'] * 1e9:.0f} ns", f"{r['field_over_hand']:.2f}×",
-                       f"{r['per_eval_batch'] * 1e9:.1f} ns", f"{r['batch_over_hand']:.2f}×",
-                       str(r["solve_hlo_instructions"]), str(r["solve_steps"]), f"{r['per_step'] * 1e6:.2f} µs",
-                       f"{r['solve_over_hand']:.2f}×"])
-        L += [table(["field", "state size", "jaxpr eqns", "StableHLO ops", "HLO instr.", "kernels", "per eval",
-                     "/ hand", "per eval (batch 1000)", "/ hand", "solve HLO instr.", "solve steps", "per step",
-                     "/ hand"], tr), ""]
+            tr.append(
+                [
+                    name,
+                    str(r["state"]),
+                    str(r["jaxpr_eqns"]),
+                    str(r["stablehlo_ops"]),
+                    str(r["hlo_instructions"]),
+                    str(r["kernels"]),
+                    f"{r['per_eval'] * 1e9:.0f} ns",
+                    f"{r['field_over_hand']:.2f}×",
+                    f"{r['per_eval_batch'] * 1e9:.1f} ns",
+                    f"{r['batch_over_hand']:.2f}×",
+                    str(r["solve_hlo_instructions"]),
+                    str(r["solve_steps"]),
+                    f"{r['per_step'] * 1e6:.2f} µs",
+                    f"{r['solve_over_hand']:.2f}×",
+                ]
+            )
+        L += [
+            table(
+                [
+                    "field",
+                    "state size",
+                    "jaxpr eqns",
+                    "StableHLO ops",
+                    "HLO instr.",
+                    "kernels",
+                    "per eval",
+                    "/ hand",
+                    "per eval (batch 1000)",
+                    "/ hand",
+                    "solve HLO instr.",
+                    "solve steps",
+                    "per step",
+                    "/ hand",
+                ],
+                tr,
+            ),
+            "",
+        ]
     return L
 
 

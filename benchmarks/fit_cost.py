@@ -84,7 +84,7 @@ def main(argv=None):
     @eqx.filter_jit
     def jac_forward_mode(pr, th, ob):
         def res(t):
-            params = pr.par.unpack(t[:pr.n_params])
+            params = pr.par.unpack(t[: pr.n_params])
             q0, qd0 = pr.initial_state(t, ob.t[0], params)
             q, _ = pr._simulate(params, q0, qd0, ob.t, diffrax.ForwardMode())
             return ((q[:, jnp.asarray(pr.observed)] - ob.y) / ob.sigma).reshape(-1)
@@ -95,10 +95,12 @@ def main(argv=None):
     def grad_reverse(pr, th, ob):
         return jax.grad(lambda t: 0.5 * jnp.sum(pr.raw_residuals(t, ob) ** 2))(th)
 
-    calls = {"simulation": (sim, (problem, theta0, obs)),
-             "jacobian_forward_sensitivity": (value_and_jacobian, (problem, theta0, obs)),
-             "jacobian_diffrax_forward_mode": (jac_forward_mode, (problem, theta0, obs)),
-             "gradient_reverse_mode": (grad_reverse, (problem_rev, theta0, obs))}
+    calls = {
+        "simulation": (sim, (problem, theta0, obs)),
+        "jacobian_forward_sensitivity": (value_and_jacobian, (problem, theta0, obs)),
+        "jacobian_diffrax_forward_mode": (jac_forward_mode, (problem, theta0, obs)),
+        "gradient_reverse_mode": (grad_reverse, (problem_rev, theta0, obs)),
+    }
     evals, outs = {}, {}
     for k, (fn, a) in calls.items():
         c, outs[k] = first_call(fn, *a)
@@ -108,25 +110,36 @@ def main(argv=None):
     g_ref = J.T @ r
     evals["jacobian_forward_sensitivity"]["max_rel_diff"] = 0.0
     evals["jacobian_diffrax_forward_mode"]["max_rel_diff"] = float(
-        np.max(np.abs(np.asarray(outs["jacobian_diffrax_forward_mode"]) - J)) / np.max(np.abs(J)))
+        np.max(np.abs(np.asarray(outs["jacobian_diffrax_forward_mode"]) - J)) / np.max(np.abs(J))
+    )
     evals["gradient_reverse_mode"]["max_rel_diff"] = float(
-        np.max(np.abs(np.asarray(outs["gradient_reverse_mode"]) - g_ref)) / np.max(np.abs(g_ref)))
+        np.max(np.abs(np.asarray(outs["gradient_reverse_mode"]) - g_ref)) / np.max(np.abs(g_ref))
+    )
     for k, m in interleaved(calls, args.repeat).items():
         evals[k]["median_s"] = m
     t_sim = evals["simulation"]["median_s"]
     for v in evals.values():
         v["relative_to_simulation"] = v["median_s"] / t_sim
     for k, v in evals.items():
-        print(f"{k}: compile+first {v['compile_and_first_s']:.1f} s, median {1e3 * v['median_s']:.2f} ms "
-              f"= {v['relative_to_simulation']:.2f} simulations", flush=True)
+        print(
+            f"{k}: compile+first {v['compile_and_first_s']:.1f} s, median {1e3 * v['median_s']:.2f} ms "
+            f"= {v['relative_to_simulation']:.2f} simulations",
+            flush=True,
+        )
 
     fits = []
     for _ in range(2):
         t0 = time.perf_counter()
         res = fit_variator(rec)
-        fits.append({"wall_s": time.perf_counter() - t0, "iterations": res.iterations, "converged": res.converged,
-                     **{f"{k}_rel_err": res.estimates[k]["value"] / truth[k] - 1 for k in ("J1", "J2")},
-                     **{f"{k}_rel_std": res.estimates[k]["std"] / res.estimates[k]["value"] for k in ("J1", "J2")}})
+        fits.append(
+            {
+                "wall_s": time.perf_counter() - t0,
+                "iterations": res.iterations,
+                "converged": res.converged,
+                **{f"{k}_rel_err": res.estimates[k]["value"] / truth[k] - 1 for k in ("J1", "J2")},
+                **{f"{k}_rel_std": res.estimates[k]["std"] / res.estimates[k]["value"] for k in ("J1", "J2")},
+            }
+        )
         print(f"fit_variator: {fits[-1]['wall_s']:.1f} s, {res.iterations} iterations", flush=True)
     iterate_s = fits[1]["wall_s"]
     compile_s = fits[0]["wall_s"] - iterate_s
@@ -137,8 +150,9 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         out = os.path.join(tmp, "fit.json")
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, "-m", "jaxnh.cli", "fit", "--quiet", "--json", out],
-                              capture_output=True, text=True)
+        proc = subprocess.run(
+            [sys.executable, "-m", "jaxnh.cli", "fit", "--quiet", "--json", out], capture_output=True, text=True
+        )
         cli_s = time.perf_counter() - t0
         cli_ok = proc.returncode == 0 and os.path.exists(out)
         cli_rep = json.load(open(out)) if cli_ok else None
@@ -147,12 +161,20 @@ def main(argv=None):
     res_all = {
         "problem": {"samples": int(rec.n), "residuals": int(obs.y.size), "unknowns": int(problem.size)},
         "evaluations": evals,
-        "fit_in_process": {"first_call_s": fits[0]["wall_s"], "second_call_s": iterate_s, "lm_solve_s": lm,
-                           "compile_s": compile_s, "runs": fits,
-                           "per_iteration_s": iterate_s / max(fits[1]["iterations"], 1)},
-        "cli_fresh_process": {"wall_s": cli_s, "exit_code": proc.returncode,
-                              "iterations": None if cli_rep is None else cli_rep["iterations"],
-                              "elapsed_in_fit_s": None if cli_rep is None else cli_rep["elapsed_s"]},
+        "fit_in_process": {
+            "first_call_s": fits[0]["wall_s"],
+            "second_call_s": iterate_s,
+            "lm_solve_s": lm,
+            "compile_s": compile_s,
+            "runs": fits,
+            "per_iteration_s": iterate_s / max(fits[1]["iterations"], 1),
+        },
+        "cli_fresh_process": {
+            "wall_s": cli_s,
+            "exit_code": proc.returncode,
+            "iterations": None if cli_rep is None else cli_rep["iterations"],
+            "elapsed_in_fit_s": None if cli_rep is None else cli_rep["elapsed_s"],
+        },
         "repeat": args.repeat,
         "machine": f"{platform.machine()}, {os.cpu_count()} CPU(s), jax {jax.__version__}",
     }
@@ -172,15 +194,22 @@ def main(argv=None):
         "max rel. difference from the fit's Jacobian |",
         "|---|---|---|---|---|",
     ]
-    label = {"simulation": "one simulation (residuals)",
-             "jacobian_forward_sensitivity": "Jacobian (3002 × 12), as the fit does: `jacfwd` + `ForwardSensitivity`",
-             "jacobian_diffrax_forward_mode": "Jacobian by `jacfwd` through `diffrax.ForwardMode`",
-             "gradient_reverse_mode": "gradient of ½‖r‖² by reverse mode (`RecursiveCheckpointAdjoint`)"}
+    label = {
+        "simulation": "one simulation (residuals)",
+        "jacobian_forward_sensitivity": "Jacobian (3002 × 12), as the fit does: `jacfwd` + `ForwardSensitivity`",
+        "jacobian_diffrax_forward_mode": "Jacobian by `jacfwd` through `diffrax.ForwardMode`",
+        "gradient_reverse_mode": "gradient of ½‖r‖² by reverse mode (`RecursiveCheckpointAdjoint`)",
+    }
     for k, v in e.items():
-        d = "—" if k == "simulation" else ("(reference)" if k == "jacobian_forward_sensitivity"
-                                           else f"{v['max_rel_diff']:.1e}")
-        lines.append(f"| {label[k]} | {v['compile_and_first_s']:.1f} s | {1e3 * v['median_s']:.2f} ms | "
-                     f"{v['relative_to_simulation']:.2f} | {d} |")
+        d = (
+            "—"
+            if k == "simulation"
+            else ("(reference)" if k == "jacobian_forward_sensitivity" else f"{v['max_rel_diff']:.1e}")
+        )
+        lines.append(
+            f"| {label[k]} | {v['compile_and_first_s']:.1f} s | {1e3 * v['median_s']:.2f} ms | "
+            f"{v['relative_to_simulation']:.2f} | {d} |"
+        )
     lines += [
         "",
         "The whole fit (`fit_variator(load_default())`, what `jaxnh fit` runs; Levenberg–Marquardt):",

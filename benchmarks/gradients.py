@@ -47,8 +47,9 @@ RTOL, ATOL = 1e-8, 1e-10
 
 def _params(K: int) -> V.VariatorParams:
     sin = [0.4] + [0.0] * (K - 1)
-    return V.VariatorParams(J1=0.02, J2=0.05, U21=nh.profiles.Fourier(1.0, cos=[0.0] * K, sin=sin, period=2.0),
-                            M1=0.3, M2=-0.1)
+    return V.VariatorParams(
+        J1=0.02, J2=0.05, U21=nh.profiles.Fourier(1.0, cos=[0.0] * K, sin=sin, period=2.0), M1=0.3, M2=-0.1
+    )
 
 
 def _setup(K: int, only_inertias: bool):
@@ -67,8 +68,18 @@ def _loss(static, ts, q_data, solver, adjoint):
     def loss(theta):
         p = eqx.combine(theta, static)
         qd0 = jnp.stack([1.0, p.U21(0.0)])
-        sol = nh.simulate(V.mechanism(), p, jnp.zeros(2), qd0, ts, solver=solver, rtol=RTOL, atol=ATOL,
-                          adjoint=adjoint, independent=(0,))
+        sol = nh.simulate(
+            V.mechanism(),
+            p,
+            jnp.zeros(2),
+            qd0,
+            ts,
+            solver=solver,
+            rtol=RTOL,
+            atol=ATOL,
+            adjoint=adjoint,
+            independent=(0,),
+        )
         return jnp.sum((sol.q - q_data) ** 2)
 
     return loss
@@ -85,15 +96,17 @@ def run(quick: bool, solver_name: str) -> dict:
         auto = auto_adjoint(p_full, jnp.zeros(2), jnp.zeros(2))  # what simulate(adjoint=None) would pick
         modes = {
             "forward solve": jax.jit(_loss(static, ts, q_data, solver, None)),
-            "reverse RecursiveCheckpoint": jax.jit(jax.grad(_loss(static, ts, q_data, solver,
-                                                                  diffrax.RecursiveCheckpointAdjoint()))),
+            "reverse RecursiveCheckpoint": jax.jit(
+                jax.grad(_loss(static, ts, q_data, solver, diffrax.RecursiveCheckpointAdjoint()))
+            ),
             "ForwardSensitivity": jax.jit(jax.grad(_loss(static, ts, q_data, solver, ForwardSensitivity()))),
         }
         if not quick:
             modes["jacfwd ForwardMode"] = jax.jit(jax.jacfwd(_loss(static, ts, q_data, solver, diffrax.ForwardMode())))
         if not quick and (K, only_J) == (1, True):
-            modes["reverse BacksolveAdjoint"] = jax.jit(jax.grad(_loss(static, ts, q_data, solver,
-                                                                       diffrax.BacksolveAdjoint())))
+            modes["reverse BacksolveAdjoint"] = jax.jit(
+                jax.grad(_loss(static, ts, q_data, solver, diffrax.BacksolveAdjoint()))
+            )
         compiled, compile_s, values = {}, {}, {}
         for name, f in modes.items():
             compiled[name], compile_s[name] = C.compile_aot(f, theta)
@@ -103,30 +116,47 @@ def run(quick: bool, solver_name: str) -> dict:
         agree = {}
         for name, g in values.items():
             if name != "forward solve":
-                d = jax.tree_util.tree_map(lambda a, b: float(jnp.max(jnp.abs(a - b)) / (jnp.max(jnp.abs(b)) + 1e-300)),
-                                           g, ref)
+                d = jax.tree_util.tree_map(
+                    lambda a, b: float(jnp.max(jnp.abs(a - b)) / (jnp.max(jnp.abs(b)) + 1e-300)), g, ref
+                )
                 agree[name] = max(jax.tree_util.tree_leaves(d))
-        times = C.interleave({k: (lambda c=c: jax.block_until_ready(c(theta))) for k, c in compiled.items()},
-                             rounds=5 if quick else 7)
+        times = C.interleave(
+            {k: (lambda c=c: jax.block_until_ready(c(theta))) for k, c in compiled.items()}, rounds=5 if quick else 7
+        )
         cpu = {k: t["cpu"] for k, t in times.items()}
         auto_name = "ForwardSensitivity" if isinstance(auto, ForwardSensitivity) else "reverse RecursiveCheckpoint"
-        row = dict(K=K, P=P, only_inertias=only_J, solver=solver_name, compile=compile_s,
-                   time={k: C.median(v) for k, v in cpu.items()},
-                   ratio={k: C.paired_ratio(v, cpu["forward solve"]) for k, v in cpu.items()},
-                   relative_difference_to_reverse=agree, auto=auto_name)
+        row = dict(
+            K=K,
+            P=P,
+            only_inertias=only_J,
+            solver=solver_name,
+            compile=compile_s,
+            time={k: C.median(v) for k, v in cpu.items()},
+            ratio={k: C.paired_ratio(v, cpu["forward solve"]) for k, v in cpu.items()},
+            relative_difference_to_reverse=agree,
+            auto=auto_name,
+        )
         row["ratio"]["auto (simulate default)"] = row["ratio"][auto_name]
         rows.append(row)
-        C.log(f"  P={P:3d}: " + "  ".join(f"{k} {r:.2f}x" for k, r in row["ratio"].items() if k != "forward solve")
-              + f"  (forward {row['time']['forward solve'] * 1e3:.2f} ms)")
-    return dict(rows=rows, rtol=RTOL, atol=ATOL, solver=solver_name, quick=quick,
-                forward_max_parameters=FORWARD_MAX_PARAMETERS)
+        C.log(
+            f"  P={P:3d}: "
+            + "  ".join(f"{k} {r:.2f}x" for k, r in row["ratio"].items() if k != "forward solve")
+            + f"  (forward {row['time']['forward solve'] * 1e3:.2f} ms)"
+        )
+    return dict(
+        rows=rows, rtol=RTOL, atol=ATOL, solver=solver_name, quick=quick, forward_max_parameters=FORWARD_MAX_PARAMETERS
+    )
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="P = 7 only; no jacfwd/backsolve")
-    ap.add_argument("--solver", default="default", choices=["default"] + sorted(C.SOLVERS),
-                    help="default: what simulate picks at rtol 1e-8 (jaxnh._simulate.default_solver)")
+    ap.add_argument(
+        "--solver",
+        default="default",
+        choices=["default"] + sorted(C.SOLVERS),
+        help="default: what simulate picks at rtol 1e-8 (jaxnh._simulate.default_solver)",
+    )
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     out = run(a.quick, C.solver_key(default_solver(RTOL)) if a.solver == "default" else a.solver)

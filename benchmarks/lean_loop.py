@@ -72,8 +72,9 @@ CPU = jax.devices("cpu")[0]
 
 def case_params() -> V.VariatorParams:
     """Issue 16's variator: U21 = 1.5 + 0.5 sin 2t (period π s), default inertias and torques."""
-    return V.VariatorParams(J1=0.02, J2=0.05, U21=profiles.Fourier(1.5, cos=[0.0], sin=[0.5], period=math.pi),
-                            M1=0.3, M2=-0.1)
+    return V.VariatorParams(
+        J1=0.02, J2=0.05, U21=profiles.Fourier(1.5, cos=[0.0], sin=[0.5], period=math.pi), M1=0.3, M2=-0.1
+    )
 
 
 P = case_params()
@@ -157,8 +158,15 @@ def bare_solve(f, y0, p, ts, rtol, atol, tab: str, max_steps: int = 100_000):
         hit = ok & (t1 == target)
         dt_new = jnp.where(hit, jnp.maximum(h * fac, dt), h * fac)
         ys = jnp.where(hit, ys.at[k].set(y1), ys)
-        return (jnp.where(ok, t1, t), jnp.where(ok, y1, y), jnp.where(ok, ks[s + 1], f0), dt_new,
-                jnp.where(hit, k + 1, k), ys, n + 1)
+        return (
+            jnp.where(ok, t1, t),
+            jnp.where(ok, y1, y),
+            jnp.where(ok, ks[s + 1], f0),
+            dt_new,
+            jnp.where(hit, k + 1, k),
+            ys,
+            n + 1,
+        )
 
     ys = jnp.zeros((ts.shape[0], y0.shape[0]), y0.dtype).at[0].set(y0)
     c = (ts[0], y0, f(ts[0], y0, p), jnp.asarray(0.01, y0.dtype), 1, ys, 0)
@@ -273,8 +281,17 @@ def numba_solver():
         b = np.array([T["b"].get(j, 0.0) for j in range(1, s + 1)])
         e1 = np.array([T["e"].get(j, 0.0) for j in range(1, s + 2)])
         e2 = np.array([T.get("e3", {}).get(j, 0.0) for j in range(1, s + 2)])
-        return (np.asarray(ptr, np.int64), np.asarray(col, np.int64), np.asarray(val, float), b,
-                np.asarray(T["c"], float), e1, e2, 1 if tab == "dop853" else 0, float(T["q"]))
+        return (
+            np.asarray(ptr, np.int64),
+            np.asarray(col, np.int64),
+            np.asarray(val, float),
+            b,
+            np.asarray(T["c"], float),
+            e1,
+            e2,
+            1 if tab == "dop853" else 0,
+            float(T["q"]),
+        )
 
     mats = {tab: dense(tab) for tab in TABLEAUS}
 
@@ -297,14 +314,25 @@ def jax_contenders(quick: bool) -> dict:
             continue
 
         def f(w0, rtol, atol, solver=solver):
-            sol = diffrax.diffeqsolve(diffrax.ODETerm(eq9), solver(), TS[0], TS[-1], None, y0_of(w0), args=P,
-                                      saveat=diffrax.SaveAt(ts=TS), max_steps=100_000, throw=False,
-                                      stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol))
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(eq9),
+                solver(),
+                TS[0],
+                TS[-1],
+                None,
+                y0_of(w0),
+                args=P,
+                saveat=diffrax.SaveAt(ts=TS),
+                max_steps=100_000,
+                throw=False,
+                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+            )
             return sol.ys, sol.stats["num_steps"]
 
         out[name] = f
     for tab in ("tsit5", "dop853"):
         for report in ("interpolate", "step"):
+
             def f(w0, rtol, atol, tab=tab, report=report):
                 s = lean_solve(eq9, y0_of(w0), P, TS, method=tab, rtol=rtol, atol=atol, report=report)
                 return s.ys, s.stats["num_steps"]
@@ -353,8 +381,20 @@ def repeat(fn, seconds=0.02):
 def measure(quick: bool) -> dict:
     ref = reference()
     rounds = 5 if quick else 11
-    res = dict(case=dict(w0=W0, U21="1.5 + 0.5 sin 2t", J1=0.02, J2=0.05, M1=0.3, M2=-0.1, horizon=10.0,
-                         report_times=101, target_error=TARGET_ERROR, batch=BATCH))
+    res = dict(
+        case=dict(
+            w0=W0,
+            U21="1.5 + 0.5 sin 2t",
+            J1=0.02,
+            J2=0.05,
+            M1=0.3,
+            M2=-0.1,
+            horizon=10.0,
+            report_times=101,
+            target_error=TARGET_ERROR,
+            batch=BATCH,
+        )
+    )
     single, calls = {}, {}
     with jax.default_device(CPU):
         for name, f in jax_contenders(quick).items():
@@ -400,8 +440,9 @@ def measure(quick: bool) -> dict:
         single[k]["per_step"] = single[k]["time"] / single[k]["steps"] if single[k]["steps"] else None
     sc = times["SciPy DOP853"]["cpu"]
     for k in calls:
-        single[k]["scipy_over"] = C.paired_ratio([x / calls["SciPy DOP853"][1] for x in sc],
-                                                 [x / calls[k][1] for x in times[k]["cpu"]])
+        single[k]["scipy_over"] = C.paired_ratio(
+            [x / calls["SciPy DOP853"][1] for x in sc], [x / calls[k][1] for x in times[k]["cpu"]]
+        )
     res["single"] = single
 
     # ---- batch of 1000 ------------------------------------------------------------
@@ -424,9 +465,10 @@ def measure(quick: bool) -> dict:
                 ys, steps = C.block(compiled(*args))
                 err = max(error_of(ys[i], refs[i]) for i in refs)
                 key = name if dev_name == "CPU" else f"{name} [GPU]"
-                batch[key] = dict(rtol=rt, error=err, max_steps=int(np.max(steps)), mean_steps=float(np.mean(steps)),
-                                  device=str(dev))
-                bcalls[key] = (lambda c=compiled, a=args: C.block(c(*a)))
+                batch[key] = dict(
+                    rtol=rt, error=err, max_steps=int(np.max(steps)), mean_steps=float(np.mean(steps)), device=str(dev)
+                )
+                bcalls[key] = lambda c=compiled, a=args: C.block(c(*a))
                 C.log(f"[lean_loop] batch {key}: error {err:.2e}, steps max {int(np.max(steps))}")
             if dev_name == "CPU" and nb is not None:
                 for tab in ("tsit5", "dop853"):
@@ -458,12 +500,20 @@ def measure(quick: bool) -> dict:
             dcalls = {}
             for tab in ("tsit5", "dop853"):
                 for report in ("interpolate", "step"):
-                    g = jax.jit(lambda w0, tab=tab, report=report, ts=ts: lean_solve(
-                        eq9, y0_of(w0), P, ts, method=tab, rtol=1e-10, atol=1e-12, report=report))
+                    g = jax.jit(
+                        lambda w0, tab=tab, report=report, ts=ts: lean_solve(
+                            eq9, y0_of(w0), P, ts, method=tab, rtol=1e-10, atol=1e-12, report=report
+                        )
+                    )
                     c = g.lower(C.f64(W0)).compile()
                     sol = c(C.f64(W0))
-                    row = dict(report_times=nrep, method=tab, report=report, steps=int(sol.stats["num_steps"]),
-                               error=error_of(sol.ys, ref_n))
+                    row = dict(
+                        report_times=nrep,
+                        method=tab,
+                        report=report,
+                        steps=int(sol.stats["num_steps"]),
+                        error=error_of(sol.ys, ref_n),
+                    )
                     density.append(row)
                     dcalls[len(density) - 1] = repeat(lambda c=c: C.block(c(C.f64(W0))))
             dt = C.interleave({k: v[0] for k, v in dcalls.items()}, rounds=3 if quick else 7)
@@ -475,8 +525,13 @@ def measure(quick: bool) -> dict:
     # ---- fixed costs, fresh processes ---------------------------------------------
     fixed = {}
     for name in jax_contenders(quick):
-        out = subprocess.run([sys.executable, "-m", "benchmarks.lean_loop", "--fixed-cost", name],
-                             capture_output=True, text=True, cwd=str(C.HERE.parent), timeout=600)
+        out = subprocess.run(
+            [sys.executable, "-m", "benchmarks.lean_loop", "--fixed-cost", name],
+            capture_output=True,
+            text=True,
+            cwd=str(C.HERE.parent),
+            timeout=600,
+        )
         try:
             fixed[name] = json.loads(out.stdout.strip().splitlines()[-1])
         except (IndexError, json.JSONDecodeError):
@@ -499,8 +554,14 @@ def fixed_cost(name: str) -> dict:
         lowered, t_lower, w_lower = C.timed(lambda: jax.jit(f).lower(*args))
         compiled, t_comp, w_comp = C.timed(lambda: lowered.compile())
         text = lowered.as_text().lower()
-        return dict(trace=t_lower, compile=t_comp, trace_wall=w_lower, compile_wall=w_comp,
-                    hlo_instructions=hlo_instructions(compiled), callbacks="callback" in text)
+        return dict(
+            trace=t_lower,
+            compile=t_comp,
+            trace_wall=w_lower,
+            compile_wall=w_comp,
+            hlo_instructions=hlo_instructions(compiled),
+            callbacks="callback" in text,
+        )
 
 
 # --------------------------------------------------------------------------- report
@@ -525,14 +586,17 @@ def section(R: dict | None) -> list:
         return []
     c = R["case"]
     bare = {tab: R["single"].get(f"bare while_loop {tab}", {}).get("per_step") for tab in ("tsit5", "dop853")}
-    L = ["## The integration loop (issue 16)", "",
-         f"Variator, w0 = {c['w0']:g} rad/s, U21 = {c['U21']}, {c['horizon']:g} s, {c['report_times']} report times; "
-         f"error = max |(phi1, phi2, phi1') − closed form| over the report times; every contender at the loosest "
-         f"rtol (1/8-decade grid, atol = rtol/100) reaching error ≤ {c['target_error']:g}. Eq. (9) by hand in every "
-         "row except the last JAX one. CPU times, medians over interleaved rounds "
-         "(`python -m benchmarks.lean_loop`). Per step: time / step attempts. The bare loop is the reference of "
-         "the ‘within 2×’ target (same tableau); numba is the limit.", "",
-         ]
+    L = [
+        "## The integration loop (issue 16)",
+        "",
+        f"Variator, w0 = {c['w0']:g} rad/s, U21 = {c['U21']}, {c['horizon']:g} s, {c['report_times']} report times; "
+        f"error = max |(phi1, phi2, phi1') − closed form| over the report times; every contender at the loosest "
+        f"rtol (1/8-decade grid, atol = rtol/100) reaching error ≤ {c['target_error']:g}. Eq. (9) by hand in every "
+        "row except the last JAX one. CPU times, medians over interleaved rounds "
+        "(`python -m benchmarks.lean_loop`). Per step: time / step attempts. The bare loop is the reference of "
+        "the ‘within 2×’ target (same tableau); numba is the limit.",
+        "",
+    ]
     S_, B_ = R["single"], R["batch"]
 
     def row(goal, label, value, ok, fmt):
@@ -545,62 +609,162 @@ def section(R: dict | None) -> list:
         for mode in ("step", "interp"):
             a, b = S_.get(f"lean {tab} ({mode})", {}), S_.get(f"bare while_loop {tab}", {})
             v = a["per_step"] / b["per_step"] if a.get("per_step") and b.get("per_step") else None
-            t.append(row("≤ 2×", f"step cost, lean {tab} ({mode}) / bare while_loop {tab}", v, lambda x: x <= 2,
-                         lambda x: f"{x:.2f}×"))
+            t.append(
+                row(
+                    "≤ 2×",
+                    f"step cost, lean {tab} ({mode}) / bare while_loop {tab}",
+                    v,
+                    lambda x: x <= 2,
+                    lambda x: f"{x:.2f}×",
+                )
+            )
     for name in ("lean dop853 (step)", "lean dop853 (step), jaxnh appell field"):
         v = S_.get(name, {}).get("scipy_over")
         t.append(row("≥ 25×", f"one trajectory, SciPy DOP853 / {name}", v, lambda x: x >= 25, lambda x: f"{x:.1f}×"))
         v = B_.get(name, {}).get("scipy_over")
-        t.append(row("≥ 150×", f"batch of {c['batch']}, SciPy DOP853 / {name} per trajectory", v, lambda x: x >= 150,
-                     lambda x: f"{x:.0f}×"))
+        t.append(
+            row(
+                "≥ 150×",
+                f"batch of {c['batch']}, SciPy DOP853 / {name} per trajectory",
+                v,
+                lambda x: x >= 150,
+                lambda x: f"{x:.0f}×",
+            )
+        )
     lim = S_.get("numba dop853 (limit)", {}).get("per_step")
-    t.append(["limit row: numba DOP853 per step", "present", _fmt_t(lim) if lim else "numba not installed",
-              "yes" if lim else "no"])
+    t.append(
+        [
+            "limit row: numba DOP853 per step",
+            "present",
+            _fmt_t(lim) if lim else "numba not installed",
+            "yes" if lim else "no",
+        ]
+    )
     gpu = [k for k in B_ if "GPU" in k]
     t.append(["GPU row", "when a GPU is present", ", ".join(gpu) if gpu else "no GPU here", "—"])
-    L += [table(["issue 16 target", "goal", "measured", "met"], t), "",
-          "The figures of every row follow, then the choice of report mode and the fixed costs.", "",
-          "### One trajectory", ""]
+    L += [
+        table(["issue 16 target", "goal", "measured", "met"], t),
+        "",
+        "The figures of every row follow, then the choice of report mode and the fixed costs.",
+        "",
+        "### One trajectory",
+        "",
+    ]
     rows = []
     for name, r in R["single"].items():
-        tab = "dop853" if ("dop853" in name.lower() or "DOP853" in name) else ("tsit5" if "tsit5" in name.lower()
-                                                                                 else None)
+        tab = (
+            "dop853"
+            if ("dop853" in name.lower() or "DOP853" in name)
+            else ("tsit5" if "tsit5" in name.lower() else None)
+        )
         vs_bare = (r["per_step"] / bare[tab]) if (tab and bare.get(tab) and r.get("per_step")) else None
-        rows.append([name, f"{r['rtol']:.2g}" if r.get("rtol") else "—", f"{r['error']:.2g}" if r.get("error") else "—",
-                     str(r.get("steps", "—")), _fmt_t(r.get("time")), _fmt_t(r.get("per_step")),
-                     f"{vs_bare:.2f}×" if vs_bare else "—", f"{r['scipy_over']:.1f}×" if r.get("scipy_over") else "—"])
-    L += [table(["contender", "rtol", "error", "steps", "time", "per step", "per step / bare loop",
-                 "SciPy DOP853 time / this"], rows), ""]
+        rows.append(
+            [
+                name,
+                f"{r['rtol']:.2g}" if r.get("rtol") else "—",
+                f"{r['error']:.2g}" if r.get("error") else "—",
+                str(r.get("steps", "—")),
+                _fmt_t(r.get("time")),
+                _fmt_t(r.get("per_step")),
+                f"{vs_bare:.2f}×" if vs_bare else "—",
+                f"{r['scipy_over']:.1f}×" if r.get("scipy_over") else "—",
+            ]
+        )
+    L += [
+        table(
+            [
+                "contender",
+                "rtol",
+                "error",
+                "steps",
+                "time",
+                "per step",
+                "per step / bare loop",
+                "SciPy DOP853 time / this",
+            ],
+            rows,
+        ),
+        "",
+    ]
     L += [f"### Batch of {c['batch']} (`jit(vmap)`, w0 ∈ [9.5, 10.5])", ""]
     rows = []
     for name, r in R["batch"].items():
-        rows.append([name, f"{r['rtol']:.2g}", f"{r['error']:.2g}", str(r["max_steps"]), _fmt_t(r.get("time")),
-                     _fmt_t(r.get("per_trajectory")), f"{r['scipy_over']:.0f}×" if r.get("scipy_over") else "—"])
-    L += [table(["contender", "rtol", "error (8 members)", "max steps", "batch time", "per trajectory",
-                 "SciPy DOP853 single / this per trajectory"], rows), ""]
+        rows.append(
+            [
+                name,
+                f"{r['rtol']:.2g}",
+                f"{r['error']:.2g}",
+                str(r["max_steps"]),
+                _fmt_t(r.get("time")),
+                _fmt_t(r.get("per_trajectory")),
+                f"{r['scipy_over']:.0f}×" if r.get("scipy_over") else "—",
+            ]
+        )
+    L += [
+        table(
+            [
+                "contender",
+                "rtol",
+                "error (8 members)",
+                "max steps",
+                "batch time",
+                "per trajectory",
+                "SciPy DOP853 single / this per trajectory",
+            ],
+            rows,
+        ),
+        "",
+    ]
     if not any("GPU" in k for k in R["batch"]):
         L += ["No GPU on this machine: the GPU rows appear when `jax.devices()` has one (same command).", ""]
     if R.get("density"):
-        L += ["### Reports: the method's interpolant or stepping onto each report time", "",
-              "Lean loop, eq. (9), rtol 1e-10, atol 1e-12, the same 10 s with 11, 101 or 1001 report times "
-              "(`report=\"interpolate\"` | `\"step\"`).", ""]
-        L += [table(["report times", "method", "report", "steps", "error", "time"],
-                    [[str(d["report_times"]), d["method"], d["report"], str(d["steps"]), f"{d['error']:.2g}",
-                      _fmt_t(d.get("time"))] for d in R["density"]]), ""]
+        L += [
+            "### Reports: the method's interpolant or stepping onto each report time",
+            "",
+            "Lean loop, eq. (9), rtol 1e-10, atol 1e-12, the same 10 s with 11, 101 or 1001 report times "
+            '(`report="interpolate"` | `"step"`).',
+            "",
+        ]
+        L += [
+            table(
+                ["report times", "method", "report", "steps", "error", "time"],
+                [
+                    [
+                        str(d["report_times"]),
+                        d["method"],
+                        d["report"],
+                        str(d["steps"]),
+                        f"{d['error']:.2g}",
+                        _fmt_t(d.get("time")),
+                    ]
+                    for d in R["density"]
+                ],
+            ),
+            "",
+        ]
     L += ["### Fixed costs (fresh process per contender)", ""]
     rows = []
     for name, r in R["fixed"].items():
         if "trace" in r:
-            rows.append([name, f"{r['trace']:.2f} s", f"{r['compile']:.2f} s", str(r["hlo_instructions"]),
-                         "yes" if r["callbacks"] else "no"])
+            rows.append(
+                [
+                    name,
+                    f"{r['trace']:.2f} s",
+                    f"{r['compile']:.2f} s",
+                    str(r["hlo_instructions"]),
+                    "yes" if r["callbacks"] else "no",
+                ]
+            )
         else:
             rows.append([name, "failed", "", "", ""])
     for name, r in R["single"].items():
         if "compile_cpu" in r:
             note = f"{r['compile_cpu']:.2f} s (numba JIT of the solver both numba rows share, first call)"
             rows.append([name, "—", note, "—", "no"])
-    L += [table(["contender", "trace (CPU)", "compile (CPU)", "HLO instructions (compiled)", "host callbacks"], rows),
-          ""]
+    L += [
+        table(["contender", "trace (CPU)", "compile (CPU)", "HLO instructions (compiled)", "host callbacks"], rows),
+        "",
+    ]
     return L
 
 
@@ -611,9 +775,20 @@ def controllers() -> list:
     rows = []
     for tab in ("tsit5", "dop853"):
         for pc, ic in ((0.0, 1.0), (0.3, 0.4), (0.2, 0.3)):
-            f = jax.jit(lambda w0, rtol, pc=pc, ic=ic, tab=tab: lean_solve(
-                eq9, y0_of(w0), P, TS, method=tab, rtol=rtol, atol=rtol / 100, report="interpolate", pcoeff=pc,
-                icoeff=ic))
+            f = jax.jit(
+                lambda w0, rtol, pc=pc, ic=ic, tab=tab: lean_solve(
+                    eq9,
+                    y0_of(w0),
+                    P,
+                    TS,
+                    method=tab,
+                    rtol=rtol,
+                    atol=rtol / 100,
+                    report="interpolate",
+                    pcoeff=pc,
+                    icoeff=ic,
+                )
+            )
             row = dict(method=tab, pcoeff=pc, icoeff=ic)
             for target in (1e-6, 1e-8):
                 for rtol in GRID:

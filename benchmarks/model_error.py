@@ -126,34 +126,47 @@ def main(argv=None):
             e = r.estimates
             u, us = r.profile_band("U21", ts)
             u_true = np.asarray(jax.vmap(U)(jnp.asarray(ts)))
-            per.append({
-                "converged": r.converged, "iterations": r.iterations, "s2": r.chi2_dof,
-                "threshold": r.lack_of_fit.threshold, "significant": r.lack_of_fit.significant,
-                "model_error_over_noise": r.lack_of_fit.model_error_over_noise,
-                "autocorrelation": r.lack_of_fit.autocorrelation,
-                **{f"{k}_rel_err": e[k]["value"] / T[k] - 1 for k in ("J1", "J2")},
-                **{f"{k}_z": (e[k]["value"] - T[k]) / e[k]["std"] for k in ("J1", "J2")},
-                **{f"{k}_rel_std": e[k]["std"] / e[k]["value"] for k in ("J1", "J2")},
-                "U21_rms_err": float(np.sqrt(np.mean((u - u_true) ** 2))),
-                "U21_mean_band": float(np.mean(us)),
-                "U21_inside_95": float(np.mean(np.abs(u - u_true) <= 1.96 * us)),
-            })
+            per.append(
+                {
+                    "converged": r.converged,
+                    "iterations": r.iterations,
+                    "s2": r.chi2_dof,
+                    "threshold": r.lack_of_fit.threshold,
+                    "significant": r.lack_of_fit.significant,
+                    "model_error_over_noise": r.lack_of_fit.model_error_over_noise,
+                    "autocorrelation": r.lack_of_fit.autocorrelation,
+                    **{f"{k}_rel_err": e[k]["value"] / T[k] - 1 for k in ("J1", "J2")},
+                    **{f"{k}_z": (e[k]["value"] - T[k]) / e[k]["std"] for k in ("J1", "J2")},
+                    **{f"{k}_rel_std": e[k]["std"] / e[k]["value"] for k in ("J1", "J2")},
+                    "U21_rms_err": float(np.sqrt(np.mean((u - u_true) ** 2))),
+                    "U21_mean_band": float(np.mean(us)),
+                    "U21_inside_95": float(np.mean(np.abs(u - u_true) <= 1.96 * us)),
+                }
+            )
         med = {k: float(np.median([p[k] for p in per])) for k in per[0] if k != "autocorrelation"}
         med["converged"] = all(p["converged"] for p in per)
         med["significant"] = f"{sum(p['significant'] for p in per)}/{len(per)}"
         med["iterations"] = max(p["iterations"] for p in per)
-        med["autocorrelation"] = {c: float(np.median([p["autocorrelation"][c] for p in per]))
-                                  for c in per[0]["autocorrelation"]}
+        med["autocorrelation"] = {
+            c: float(np.median([p["autocorrelation"][c] for p in per])) for c in per[0]["autocorrelation"]
+        }
         med["U21_best_spline_rms"] = best_spline_rms(U, knots, ts)
         rows.append({"case": name, **med, "runs": per})
-        print(f"{name}: s² {med['s2']:.3g} (limit {med['threshold']:.3g}), flagged {med['significant']}, "
-              f"J1 {100 * med['J1_rel_err']:+.3f} % (z {med['J1_z']:+.1f}), J2 {100 * med['J2_rel_err']:+.3f} % "
-              f"(z {med['J2_z']:+.1f}), U21 rms err {med['U21_rms_err']:.2e} (spline limit "
-              f"{med['U21_best_spline_rms']:.2e})", flush=True)
+        print(
+            f"{name}: s² {med['s2']:.3g} (limit {med['threshold']:.3g}), flagged {med['significant']}, "
+            f"J1 {100 * med['J1_rel_err']:+.3f} % (z {med['J1_z']:+.1f}), J2 {100 * med['J2_rel_err']:+.3f} % "
+            f"(z {med['J2_z']:+.1f}), U21 rms err {med['U21_rms_err']:.2e} (spline limit "
+            f"{med['U21_best_spline_rms']:.2e})",
+            flush=True,
+        )
     elapsed = time.perf_counter() - started
-    res = {"seeds": args.seeds, "cases": rows, "elapsed_s": elapsed,
-           "noise_std_rad": mk.noise_std().tolist(),
-           "machine": f"{platform.machine()}, {os.cpu_count()} CPU(s), jax {jax.__version__}"}
+    res = {
+        "seeds": args.seeds,
+        "cases": rows,
+        "elapsed_s": elapsed,
+        "noise_std_rad": mk.noise_std().tolist(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPU(s), jax {jax.__version__}",
+    }
     with open(os.path.join(HERE, "model_error.json"), "w") as f:
         json.dump(res, f, indent=1)
     lines = [
@@ -175,7 +188,8 @@ def main(argv=None):
             f"{r['model_error_over_noise']:.2f} | {100 * r['J1_rel_err']:+.3f} % | {r['J1_z']:+.1f} | "
             f"{100 * r['J2_rel_err']:+.3f} % | {r['J2_z']:+.1f} | {r['U21_rms_err']:.2e} | "
             f"{r['U21_best_spline_rms']:.2e} | {100 * r['U21_inside_95']:.0f} % | {ac} | "
-            f"{'yes' if r['converged'] else 'NO'}, {r['iterations']} |")
+            f"{'yes' if r['converged'] else 'NO'}, {r['iterations']} |"
+        )
     lines += [
         "",
         "s²: weighted residual variance (≈ 1 when the model fits); flagged: the fit's lack-of-fit test "

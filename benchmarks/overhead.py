@@ -53,35 +53,53 @@ def rhs_cost(problem: str, solvers, rounds: int, simulate_calls: bool = True) ->
     for sname in solvers:
         calls, compile_s, steps = {}, {}, {}
         for method in ("appell", "lagrange"):
-            fn, y0 = C.jaxnh_solver_fn(mech, method, q0, qd0, p, ts, C.SOLVERS[sname](),
-                                       independent=ind if method == "appell" else None)
+            fn, y0 = C.jaxnh_solver_fn(
+                mech, method, q0, qd0, p, ts, C.SOLVERS[sname](), independent=ind if method == "appell" else None
+            )
             calls[method], compile_s[method], comp = _compile(fn, p, y0)
             steps[method] = int(comp(p, y0, C.f64(1e-8), C.f64(1e-10))[2])
         fn = C.hand_solver_fn(hand_vf, hand_unpack, ts, C.SOLVERS[sname]())
         calls["hand"], compile_s["hand"], comp = _compile(fn, p, hand_y0)
         steps["hand"] = int(comp(p, hand_y0, C.f64(1e-8), C.f64(1e-10))[2])
         for method in ("appell", "lagrange") if simulate_calls else ():
-            kw = dict(method=method, solver=C.SOLVERS[sname](), rtol=1e-8, atol=1e-10,
-                      independent=ind if method == "appell" else None)
-            calls[f"{method} through simulate"] = (
-                lambda kw=kw: jax.block_until_ready(nh.simulate(mech, p, q0, qd0, ts, **kw).q))
+            kw = dict(
+                method=method,
+                solver=C.SOLVERS[sname](),
+                rtol=1e-8,
+                atol=1e-10,
+                independent=ind if method == "appell" else None,
+            )
+            calls[f"{method} through simulate"] = lambda kw=kw: jax.block_until_ready(
+                nh.simulate(mech, p, q0, qd0, ts, **kw).q
+            )
             jf = jax.jit(lambda p_, q0_, qd0_, kw=kw: nh.simulate(mech, p_, q0_, qd0_, ts, **kw).q)
             _, cpu, wall = C.timed(lambda jf=jf: jax.block_until_ready(jf(p, q0, qd0)))
             compile_s[f"{method} jit(simulate)"] = {"cpu": cpu, "wall": wall}
-            calls[f"{method} jit(simulate)"] = (lambda jf=jf: jax.block_until_ready(jf(p, q0, qd0)))
+            calls[f"{method} jit(simulate)"] = lambda jf=jf: jax.block_until_ready(jf(p, q0, qd0))
             _, cpu, wall = C.timed(calls[f"{method} through simulate"])  # first call: checks + compile
             compile_s[f"{method} through simulate"] = {"cpu": cpu, "wall": wall}
         times = C.interleave(calls, rounds=rounds)
         cpu = {k: v["cpu"] for k, v in times.items()}
-        row = dict(problem=problem, solver=sname, horizon=float(ts[-1]), steps=steps, compile=compile_s,
-                   time={k: C.median(v) for k, v in cpu.items()},
-                   time_wall={k: C.median(v["wall"]) for k, v in times.items()},
-                   ratio={k: C.paired_ratio(cpu[k], cpu["hand"]) for k in cpu if k != "hand"},
-                   simulate_overhead={m: C.median(np.asarray(cpu[f"{m} through simulate"]) - np.asarray(cpu[m]))
-                                      for m in ("appell", "lagrange") if f"{m} through simulate" in cpu})
+        row = dict(
+            problem=problem,
+            solver=sname,
+            horizon=float(ts[-1]),
+            steps=steps,
+            compile=compile_s,
+            time={k: C.median(v) for k, v in cpu.items()},
+            time_wall={k: C.median(v["wall"]) for k, v in times.items()},
+            ratio={k: C.paired_ratio(cpu[k], cpu["hand"]) for k in cpu if k != "hand"},
+            simulate_overhead={
+                m: C.median(np.asarray(cpu[f"{m} through simulate"]) - np.asarray(cpu[m]))
+                for m in ("appell", "lagrange")
+                if f"{m} through simulate" in cpu
+            },
+        )
         rows.append(row)
-        C.log(f"  {problem}/{sname}: appell/hand {row['ratio']['appell']:.2f}x  lagrange/hand "
-              f"{row['ratio']['lagrange']:.2f}x  (hand {row['time']['hand'] * 1e3:.2f} ms)")
+        C.log(
+            f"  {problem}/{sname}: appell/hand {row['ratio']['appell']:.2f}x  lagrange/hand "
+            f"{row['ratio']['lagrange']:.2f}x  (hand {row['time']['hand'] * 1e3:.2f} ms)"
+        )
     return rows
 
 
@@ -100,15 +118,29 @@ def records(rounds: int, quick: bool) -> list:
         for method in ("appell",) if quick else ("appell", "lagrange"):
             calls, compile_s = {}, {}
             for rec in QUICK_RECORDS if quick else RECORDS:
-                fn, y0 = C.jaxnh_solver_fn(mech, method, q0, qd0, p, ts, C.SOLVERS["DOP853"](), record=rec,
-                                           independent=ind if method == "appell" else None)
+                fn, y0 = C.jaxnh_solver_fn(
+                    mech,
+                    method,
+                    q0,
+                    qd0,
+                    p,
+                    ts,
+                    C.SOLVERS["DOP853"](),
+                    record=rec,
+                    independent=ind if method == "appell" else None,
+                )
                 key = "+".join(rec) or "nothing"
                 calls[key], compile_s[key], _ = _compile(fn, p, y0)
             times = C.interleave(calls, rounds=rounds)
             cpu = {k: t["cpu"] for k, t in times.items()}
-            row = dict(problem=name, method=method, n_report=int(ts.shape[0]), compile=compile_s,
-                       time={k: C.median(t) for k, t in cpu.items()},
-                       ratio={k: C.paired_ratio(cpu[k], cpu["nothing"]) for k in cpu})
+            row = dict(
+                problem=name,
+                method=method,
+                n_report=int(ts.shape[0]),
+                compile=compile_s,
+                time={k: C.median(t) for k, t in cpu.items()},
+                ratio={k: C.paired_ratio(cpu[k], cpu["nothing"]) for k in cpu},
+            )
             rows.append(row)
             C.log(f"  record {name}/{method}: " + "  ".join(f"{k} {r:.3f}x" for k, r in row["ratio"].items()))
     return rows
@@ -120,8 +152,16 @@ def rheonomic(rounds: int) -> list:
         g = PB.generic(T=20.0, n=201, rheonomic=rh)
         calls, steps, compile_s = {}, {}, {}
         for method in ("appell", "lagrange"):
-            fn, y0 = C.jaxnh_solver_fn(g.mech, method, g.q0, g.qd0, g.params, g.ts, C.SOLVERS["DOP853"](),
-                                       independent=g.independent if method == "appell" else None)
+            fn, y0 = C.jaxnh_solver_fn(
+                g.mech,
+                method,
+                g.q0,
+                g.qd0,
+                g.params,
+                g.ts,
+                C.SOLVERS["DOP853"](),
+                independent=g.independent if method == "appell" else None,
+            )
             calls[method], compile_s[method], comp = _compile(fn, g.params, y0)
             steps[method] = int(comp(g.params, y0, C.f64(1e-8), C.f64(1e-10))[2])
         fn = C.hand_solver_fn(PB.generic_rhs_jax, lambda ys, ts, p: ys, g.ts, C.SOLVERS["DOP853"]())
@@ -129,12 +169,18 @@ def rheonomic(rounds: int) -> list:
         steps["hand"] = int(comp(g.params, (g.q0, g.qd0), C.f64(1e-8), C.f64(1e-10))[2])
         times = C.interleave(calls, rounds=rounds)
         cpu = {k: t["cpu"] for k, t in times.items()}
-        row = dict(rheonomic=rh, steps=steps, compile=compile_s,
-                   step_time={k: C.median(t) / steps[k] for k, t in cpu.items()},
-                   ratio={k: C.paired_ratio(cpu[k], cpu["hand"]) for k in ("appell", "lagrange")})
+        row = dict(
+            rheonomic=rh,
+            steps=steps,
+            compile=compile_s,
+            step_time={k: C.median(t) / steps[k] for k, t in cpu.items()},
+            ratio={k: C.paired_ratio(cpu[k], cpu["hand"]) for k in ("appell", "lagrange")},
+        )
         rows.append(row)
-        C.log(f"  {'rheonomic' if rh else 'time-invariant'}: per step " + "  ".join(
-            f"{k} {t * 1e6:.1f} us" for k, t in row["step_time"].items()))
+        C.log(
+            f"  {'rheonomic' if rh else 'time-invariant'}: per step "
+            + "  ".join(f"{k} {t * 1e6:.1f} us" for k, t in row["step_time"].items())
+        )
     return rows
 
 

@@ -106,14 +106,21 @@ def generic_params(s: int = 10, m: int = 3, seed: int = 0, rheonomic: bool = Tru
     U *= np.sqrt(0.5 * lam_min / np.sum(U**2))  # Σ|u_k|² = λmin/2: M(q) ≻ 0 for every q
     A0 = np.zeros((m, s))
     for r in range(m):  # each constraint ties a few coordinates, like a rolling contact
-        A0[r, 3 * r: 3 * r + 3] = rng.randn(3) + np.array([2.0, 0.0, 0.0])
+        A0[r, 3 * r : 3 * r + 3] = rng.randn(3) + np.array([2.0, 0.0, 0.0])
         A0[r, (3 * r + 4) % s] = -1.0
     B = 0.3 * rng.randn(m, s) * (A0 != 0)
     out = dict(
-        M0=M0, U=U, A0=A0, B=B,
-        gamma=(0.1 * rng.rand(m)) if rheonomic else np.zeros(m), omega=1.0 + rng.rand(m),
-        damping=0.05 * np.ones(s), stiffness=1.0 + rng.rand(s), coupling=0.3,
-        force=(0.2 * rng.rand(s)) if rheonomic else np.zeros(s), Omega=0.5 + rng.rand(s),
+        M0=M0,
+        U=U,
+        A0=A0,
+        B=B,
+        gamma=(0.1 * rng.rand(m)) if rheonomic else np.zeros(m),
+        omega=1.0 + rng.rand(m),
+        damping=0.05 * np.ones(s),
+        stiffness=1.0 + rng.rand(s),
+        coupling=0.3,
+        force=(0.2 * rng.rand(s)) if rheonomic else np.zeros(s),
+        Omega=0.5 + rng.rand(s),
     )
     return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
@@ -132,12 +139,14 @@ def generic_mechanism(rheonomic: bool = True) -> nh.Mechanism:
         return 0.5 * jnp.sum(p["stiffness"] * q**2) + p["coupling"] * jnp.sum(jnp.cos(q[:-1] - q[1:]))
 
     if rheonomic:
+
         def constraints(q, qd, t, p):
             return (p["A0"] + p["B"] * jnp.sin(q)) @ qd + p["gamma"] * jnp.sin(p["omega"] * t)
 
         def forces(q, qd, t, p):
             return -p["damping"] * qd + p["force"] * jnp.cos(p["Omega"] * t)
     else:
+
         def constraints(q, qd, t, p):
             return (p["A0"] + p["B"] * jnp.sin(q)) @ qd
 

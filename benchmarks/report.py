@@ -73,9 +73,17 @@ def default_key(problem: str, method: str = "appell"):
     return lambda r: C.solver_key(default_solver(r, ops, method))
 
 
-SOLVER_COLORS = {"Tsit5": "tab:blue", "Tsit5u": "tab:cyan", "Dopri5": "tab:green", "Dopri8": "tab:olive",
-                 "DOP853": "tab:red", "Kvaerno5": "tab:purple", "RK45": "tab:gray", "LSODA": "tab:brown",
-                 "Radau": "tab:pink"}
+SOLVER_COLORS = {
+    "Tsit5": "tab:blue",
+    "Tsit5u": "tab:cyan",
+    "Dopri5": "tab:green",
+    "Dopri8": "tab:olive",
+    "DOP853": "tab:red",
+    "Kvaerno5": "tab:purple",
+    "RK45": "tab:gray",
+    "LSODA": "tab:brown",
+    "Radau": "tab:pink",
+}
 METHOD_STYLE = {"appell": ("-", "o"), "lagrange": ("--", "s"), "hand": (":", "^"), "numpy": ("-.", "x")}
 
 
@@ -135,7 +143,7 @@ def fig_wp(wp, path):
             _plot_curve(bx, pts, name, _label(name, "by hand"))
         if kind == "appell" and pts[0].get("step_cost"):
             _plot_curve(cx, pts, name, C.SOLVER_LABELS.get(solver, solver), y="step")
-    ax.set_title("(a) solvers: jaxnh \"appell\" (solid) vs SciPy solve_ivp\non a NumPy RHS (dash-dot)")
+    ax.set_title('(a) solvers: jaxnh "appell" (solid) vs SciPy solve_ivp\non a NumPy RHS (dash-dot)')
     bx.set_title("(b) formulations: appell (solid), lagrange (dashed),\nhand-written equations (dotted)")
     cx.set_title("(c) CPU time per step, jaxnh appell\n(includes the fixed per-call cost)")
     for x in (ax, bx):
@@ -148,8 +156,11 @@ def fig_wp(wp, path):
     for x in axes:
         x.grid(True, which="major", alpha=0.3)
         x.legend(fontsize=8, loc="best")
-    fig.suptitle(f"Work-precision, {wp['problem']} ({wp['horizon']:g} s, {wp['n_report']} report times); "
-                 f"rtol {max(wp['tols']):g} … {min(wp['tols']):g}; reference: {wp['reference']}", fontsize=10)
+    fig.suptitle(
+        f"Work-precision, {wp['problem']} ({wp['horizon']:g} s, {wp['n_report']} report times); "
+        f"rtol {max(wp['tols']):g} … {min(wp['tols']):g}; reference: {wp['reference']}",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -164,8 +175,15 @@ def fig_throughput(tp, path, scipy_time=None):
         rows.sort(key=lambda r: r["batch"])
         ls, mk = METHOD_STYLE[kind]
         who = "eq. (9) by hand" if kind == "hand" else f"jaxnh {kind}"
-        ax.loglog([r["batch"] for r in rows], [r["per_trajectory"] for r in rows], ls=ls, marker=mk, lw=1.5,
-                  color=SOLVER_COLORS.get(solver, "k"), label=f"{who}, {C.SOLVER_LABELS.get(solver, solver)}")
+        ax.loglog(
+            [r["batch"] for r in rows],
+            [r["per_trajectory"] for r in rows],
+            ls=ls,
+            marker=mk,
+            lw=1.5,
+            color=SOLVER_COLORS.get(solver, "k"),
+            label=f"{who}, {C.SOLVER_LABELS.get(solver, solver)}",
+        )
     if scipy_time:
         ax.axhline(scipy_time, color="tab:gray", ls="-.", lw=1.2, label="SciPy DOP853, one trajectory at error 1e-8")
         ax.axhline(scipy_time / 150, color="k", ls=":", lw=0.8, label="target: SciPy DOP853 / 150")
@@ -187,18 +205,33 @@ def fig_gradients(gr, path):
         pts = [(r["P"], r["ratio"][m]) for r in rows if m in r["ratio"]]
         if pts:
             auto = m.startswith("auto")
-            ax.plot(*zip(*pts), marker="o", label=m, ls="--" if auto else "-", lw=3 if auto else 1.4,
-                    color="k" if auto else None, alpha=0.6 if auto else 1.0, zorder=3 if auto else 2)
+            ax.plot(
+                *zip(*pts),
+                marker="o",
+                label=m,
+                ls="--" if auto else "-",
+                lw=3 if auto else 1.4,
+                color="k" if auto else None,
+                alpha=0.6 if auto else 1.0,
+                zorder=3 if auto else 2,
+            )
     ax.axhline(3.0, color="tab:red", lw=0.9, ls=":", label="target 3×")
     if gr.get("forward_max_parameters"):
-        ax.axvline(gr["forward_max_parameters"], color="gray", lw=0.9, ls="-.",
-                   label=f"FORWARD_MAX_PARAMETERS = {gr['forward_max_parameters']} (counts q0, qd0 too)")
+        ax.axvline(
+            gr["forward_max_parameters"],
+            color="gray",
+            lw=0.9,
+            ls="-.",
+            label=f"FORWARD_MAX_PARAMETERS = {gr['forward_max_parameters']} (counts q0, qd0 too)",
+        )
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("number of differentiated parameters P")
     ax.set_ylabel("gradient CPU time / forward solve CPU time")
-    ax.set_title(f"Gradient of a trajectory loss, variator, {C.SOLVER_LABELS.get(gr['solver'], gr['solver'])}, "
-                 f"rtol {gr['rtol']:g}")
+    ax.set_title(
+        f"Gradient of a trajectory loss, variator, {C.SOLVER_LABELS.get(gr['solver'], gr['solver'])}, "
+        f"rtol {gr['rtol']:g}"
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -217,20 +250,33 @@ def table(header, rows) -> str:
 
 def wp_section(wp, title) -> list:
     curves = _curves(wp)
-    lines = [f"### {title}", "", f"Reference: {wp['reference']}. Horizon {wp['horizon']:g} s, "
-             f"{wp['n_report']} report times; sweep rtol {max(wp['tols']):g} … {min(wp['tols']):g}, atol = rtol/100. "
-             f"Figure: `figures/wp_{wp['problem']}.png`.", ""]
+    lines = [
+        f"### {title}",
+        "",
+        f"Reference: {wp['reference']}. Horizon {wp['horizon']:g} s, "
+        f"{wp['n_report']} report times; sweep rtol {max(wp['tols']):g} … {min(wp['tols']):g}, atol = rtol/100. "
+        f"Figure: `figures/wp_{wp['problem']}.png`.",
+        "",
+    ]
     errs = [1e-4, 1e-6, 1e-8, 1e-10]
     rows = []
     for name in curves:
         comp = wp["compile"].get(name)
         best = min(curves[name], key=lambda p: p["error"])
-        rows.append([_label(name, wp["hand_label"])] + [fmt_t(time_at(curves, name, e)) for e in errs]
-                    + [f"{best['error']:.1e}", f"{comp['cpu']:.1f} s" if comp else "—"])
-    lines.append(table(["contender"] + [f"time at error {e:g}" for e in errs] + ["smallest error", "compile (CPU)"],
-                       rows))
-    lines += ["", "Time at a given error is interpolated log-log between the two sweep points that bracket it "
-              "(— when none do). Raw points, wall times and step counts: `results/wp_" + wp["problem"] + ".json`.", ""]
+        rows.append(
+            [_label(name, wp["hand_label"])]
+            + [fmt_t(time_at(curves, name, e)) for e in errs]
+            + [f"{best['error']:.1e}", f"{comp['cpu']:.1f} s" if comp else "—"]
+        )
+    lines.append(
+        table(["contender"] + [f"time at error {e:g}" for e in errs] + ["smallest error", "compile (CPU)"], rows)
+    )
+    lines += [
+        "",
+        "Time at a given error is interpolated log-log between the two sweep points that bracket it "
+        "(— when none do). Raw points, wall times and step counts: `results/wp_" + wp["problem"] + ".json`.",
+        "",
+    ]
     return lines
 
 
@@ -248,40 +294,77 @@ def targets(R) -> tuple[list, dict]:
             if r["problem"] != "variator":
                 continue
             a, l_ = r["ratio"]["appell"], r["ratio"]["lagrange"]
-            rows.append([f"1. appell vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
-                         "≤ 1.2×", fmt_x(a), "yes" if a <= 1.2 else f"no (+{(a / 1.2 - 1) * 100:.0f} %)"])
-            rows.append([f"1. lagrange vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
-                         "≤ 1.5×", fmt_x(l_), "yes" if l_ <= 1.5 else f"no (+{(l_ / 1.5 - 1) * 100:.0f} %)"])
+            rows.append(
+                [
+                    f"1. appell vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
+                    "≤ 1.2×",
+                    fmt_x(a),
+                    "yes" if a <= 1.2 else f"no (+{(a / 1.2 - 1) * 100:.0f} %)",
+                ]
+            )
+            rows.append(
+                [
+                    f"1. lagrange vs eq. (9) by hand, {C.SOLVER_LABELS[r['solver']]}, compiled solve",
+                    "≤ 1.5×",
+                    fmt_x(l_),
+                    "yes" if l_ <= 1.5 else f"no (+{(l_ / 1.5 - 1) * 100:.0f} %)",
+                ]
+            )
             head[f"appell_over_hand_{r['solver']}"] = a
             head[f"lagrange_over_hand_{r['solver']}"] = l_
     if wpv:
         cv = _curves(wpv)
-        sc = {s: _median([p["step_cost"] for p in cv.get(f"appell/{s}", [])]) for s in ("Tsit5", "Tsit5u", "DOP853",
-                                                                                       "Dopri8")}
+        sc = {
+            s: _median([p["step_cost"] for p in cv.get(f"appell/{s}", [])])
+            for s in ("Tsit5", "Tsit5u", "DOP853", "Dopri8")
+        }
         if sc["DOP853"] and sc["Tsit5"]:
             r = sc["DOP853"] / sc["Tsit5"]
-            rows.append(["2. DOP853 step / diffrax Tsit5 step (appell, variator, median over rtol)", "≤ 2×", fmt_x(r),
-                         "yes" if r <= 2 else f"no (+{(r / 2 - 1) * 100:.0f} %)"])
+            rows.append(
+                [
+                    "2. DOP853 step / diffrax Tsit5 step (appell, variator, median over rtol)",
+                    "≤ 2×",
+                    fmt_x(r),
+                    "yes" if r <= 2 else f"no (+{(r / 2 - 1) * 100:.0f} %)",
+                ]
+            )
             head["dop853_step_over_tsit5"] = r
         for e in (1e-10, 1e-11):
             td = time_at(cv, "appell/DOP853", e)
             others = {s: time_at(cv, f"appell/{s}", e) for s in ("Tsit5", "Dopri8")}
             if td is None or any(v is None for v in others.values()):
-                rows.append([f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)", "faster",
-                             "not bracketed", "—"])
+                rows.append(
+                    [
+                        f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)",
+                        "faster",
+                        "not bracketed",
+                        "—",
+                    ]
+                )
                 continue
             ok = all(td < v for v in others.values())
-            rows.append([f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)", "faster",
-                         f"DOP853 {fmt_t(td)}; Tsit5 {fmt_t(others['Tsit5'])}; Dopri8 {fmt_t(others['Dopri8'])}",
-                         "yes" if ok else "no"])
+            rows.append(
+                [
+                    f"2. DOP853 faster than Tsit5 and Dopri8 at error {e:g} (appell, variator)",
+                    "faster",
+                    f"DOP853 {fmt_t(td)}; Tsit5 {fmt_t(others['Tsit5'])}; Dopri8 {fmt_t(others['Dopri8'])}",
+                    "yes" if ok else "no",
+                ]
+            )
         ts_sc = time_at(cv, "scipy/DOP853", 1e-8)
         jax_best = {n: time_at(cv, n, 1e-8) for n in cv if n.startswith("appell/")}
         jax_best = {k: v for k, v in jax_best.items() if v is not None}
         if ts_sc and jax_best:
             bn = min(jax_best, key=jax_best.get)
             r = ts_sc / jax_best[bn]
-            rows.append([f"3. SciPy DOP853 / jaxnh ({bn}), single trajectory at error 1e-8, compiled solve", "≥ 25×",
-                         fmt_x(r), "yes" if r >= 25 else f"no ({r / 25 * 100:.0f} % of it)"])
+            rows.append(
+                [
+                    f"3. SciPy DOP853 / jaxnh ({bn}), single trajectory at error 1e-8, compiled solve",
+                    "≥ 25×",
+                    fmt_x(r),
+                    "yes" if r >= 25 else f"no ({r / 25 * 100:.0f} % of it)",
+                ]
+            )
             head["scipy_over_jaxnh_single"] = r
             head["scipy_dop853_at_1e-8"] = ts_sc
         if ts_sc and tp:
@@ -289,34 +372,59 @@ def targets(R) -> tuple[list, dict]:
             if big:
                 b = min(big, key=lambda x: x["per_trajectory"])
                 r = ts_sc / b["per_trajectory"]
-                rows.append([f"3. SciPy DOP853 / jaxnh batched ({b['solver']}, batch {b['batch']}, error "
-                             f"{b['error_member0']:.0e}), per trajectory", "≥ 150×", fmt_x(r),
-                             "yes" if r >= 150 else f"no ({r / 150 * 100:.0f} % of it)"])
+                rows.append(
+                    [
+                        f"3. SciPy DOP853 / jaxnh batched ({b['solver']}, batch {b['batch']}, error "
+                        f"{b['error_member0']:.0e}), per trajectory",
+                        "≥ 150×",
+                        fmt_x(r),
+                        "yes" if r >= 150 else f"no ({r / 150 * 100:.0f} % of it)",
+                    ]
+                )
                 head["scipy_over_jaxnh_batch"] = r
     if gr:
         for r in sorted(gr["rows"], key=lambda r: r["P"]):
             a = r["ratio"]["auto (simulate default)"]
             cur = r["ratio"]["reverse RecursiveCheckpoint"]
-            rows.append([f"4. gradient / forward, P = {r['P']} (auto → {r['auto']}; today's default "
-                         f"{fmt_x(cur)})", "≤ 3×", fmt_x(a), "yes" if a <= 3 else f"no (+{(a / 3 - 1) * 100:.0f} %)"])
+            rows.append(
+                [
+                    f"4. gradient / forward, P = {r['P']} (auto → {r['auto']}; today's default {fmt_x(cur)})",
+                    "≤ 3×",
+                    fmt_x(a),
+                    "yes" if a <= 3 else f"no (+{(a / 3 - 1) * 100:.0f} %)",
+                ]
+            )
     if ct:
         for r in ct["rows"]:
             if "error" in r or not r["kind"].startswith("simulate"):
                 continue
             c = r["compile"]["cpu"]
-            rows.append([f"5. first-call compile: {r['label']} (CPU; wall {r['compile']['wall']:.1f} s)", "≤ 1.5 s",
-                         f"{c:.2f} s", "yes" if c <= 1.5 else f"no (+{(c / 1.5 - 1) * 100:.0f} %)"])
+            rows.append(
+                [
+                    f"5. first-call compile: {r['label']} (CPU; wall {r['compile']['wall']:.1f} s)",
+                    "≤ 1.5 s",
+                    f"{c:.2f} s",
+                    "yes" if c <= 1.5 else f"no (+{(c / 1.5 - 1) * 100:.0f} %)",
+                ]
+            )
     for wp, method in wp_formulations(R):
-        for label, pick in (("previous default diffrax Tsit5", lambda r: "Tsit5"),
-                            ("default_solver(rtol)", default_key(wp["problem"], method))):
+        for label, pick in (
+            ("previous default diffrax Tsit5", lambda r: "Tsit5"),
+            ("default_solver(rtol)", default_key(wp["problem"], method)),
+        ):
             slow = default_slowdown(wp, pick, method)
             if slow:
                 v = list(slow.values())
                 worst, mean = max(v), gmean(v)
-                rows.append([f"6. {wp['problem']} {method}: {label} vs the fastest {method} solver at the same "
-                             f"error, over rtol {max(slow):g} … {min(slow):g} (mean / worst)", "≈ 1×",
-                             f"{fmt_x(mean)} / {fmt_x(worst)}",
-                             "yes" if worst <= 1.15 else ("on average" if mean <= 1.15 else "no")])
+                rows.append(
+                    [
+                        f"6. {wp['problem']} {method}: {label} vs the fastest {method} solver at the same "
+                        f"error, over rtol {max(slow):g} … {min(slow):g} (mean / worst)",
+                        "≈ 1×",
+                        f"{fmt_x(mean)} / {fmt_x(worst)}",
+                        "yes" if worst <= 1.15 else ("on average" if mean <= 1.15 else "no"),
+                    ]
+                )
     return rows, head
 
 
@@ -346,18 +454,37 @@ def default_section(R) -> list:
         prop = default_slowdown(wp, pick, method)
         rows = []
         for r in wp["tols"]:
-            pts = {n: next((p for p in v if p["rtol"] == r), None) for n, v in cv.items()
-                   if n.startswith(method + "/") and not n.endswith("Kvaerno5")}
+            pts = {
+                n: next((p for p in v if p["rtol"] == r), None)
+                for n, v in cv.items()
+                if n.startswith(method + "/") and not n.endswith("Kvaerno5")
+            }
             mine = pts.get(f"{method}/{pick(r)}")
             if mine is None:
                 continue
-            fastest = min(((n, time_at(cv, n, mine["error"])) for n in pts if pts[n] is not None),
-                          key=lambda x: x[1] if x[1] is not None else 1e9, default=(None, None))
-            rows.append([f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)),
-                         (fastest[0] or "—").split("/")[-1]])
-        L += [f"**{wp['problem']}, {method}** (vector field: {operations(wp['problem'], method)} operations)", "",
-              table(["rtol", "default_solver(rtol)", "its time / fastest at that error",
-                     "diffrax Tsit5 (previous default) / fastest", f"fastest {method} solver"], rows), ""]
+            fastest = min(
+                ((n, time_at(cv, n, mine["error"])) for n in pts if pts[n] is not None),
+                key=lambda x: x[1] if x[1] is not None else 1e9,
+                default=(None, None),
+            )
+            rows.append(
+                [f"{r:g}", pick(r), fmt_x(prop.get(r)), fmt_x(today.get(r)), (fastest[0] or "—").split("/")[-1]]
+            )
+        L += [
+            f"**{wp['problem']}, {method}** (vector field: {operations(wp['problem'], method)} operations)",
+            "",
+            table(
+                [
+                    "rtol",
+                    "default_solver(rtol)",
+                    "its time / fastest at that error",
+                    "diffrax Tsit5 (previous default) / fastest",
+                    f"fastest {method} solver",
+                ],
+                rows,
+            ),
+            "",
+        ]
     return L
 
 
@@ -404,90 +531,141 @@ def kernel_slope(row) -> float:
 
 def field_cost_section(fc) -> list:
     """Where the time of a step goes (benchmarks/field_cost.py)."""
-    L = ["### Where a step's time goes", "",
-         "`benchmarks/field_cost.py`: one vector-field evaluation compiled alone (repeated in a loop at new (t, y) "
-         "each time), the XLA CPU kernels it compiles to, and one step of a compiled solve at rtol 1e-8 over a long "
-         "horizon. \"kernels per step\" counts the run-time instructions of the unrolled Tsit5's step loop body; "
-         f"a Tsit5 step evaluates the field {fc['stages_per_step']} times. The trivial field is an oscillator with "
-         "the same state layout: the integration loop with next to nothing to evaluate.", ""]
+    L = [
+        "### Where a step's time goes",
+        "",
+        "`benchmarks/field_cost.py`: one vector-field evaluation compiled alone (repeated in a loop at new (t, y) "
+        "each time), the XLA CPU kernels it compiles to, and one step of a compiled solve at rtol 1e-8 over a long "
+        'horizon. "kernels per step" counts the run-time instructions of the unrolled Tsit5\'s step loop body; '
+        f"a Tsit5 step evaluates the field {fc['stages_per_step']} times. The trivial field is an oscillator with "
+        "the same state layout: the integration loop with next to nothing to evaluate.",
+        "",
+    ]
     for row in fc["rows"]:
         solvers = [s for s in ("Tsit5u", "Tsit5") if f"hand/{s}" in row["step"]]
         rows = []
         for k in ("appell", "lagrange", "hand", "trivial"):
             field = row["field"].get(k)
             step = row["step"][f"{k}/Tsit5u"]
-            rows.append([k, fmt_ns(field) if field is not None else "—",
-                         str(sum(row["kernels"][k].values())) if k in row["kernels"] else "—",
-                         str(row["step_kernels"][k]), fmt_t(step),
-                         f"{fc['stages_per_step'] * field / step:.0%}" if field is not None else "—"]
-                        + ([fmt_t(row["step"][f"{k}/Tsit5"])] if "Tsit5" in solvers else []))
+            rows.append(
+                [
+                    k,
+                    fmt_ns(field) if field is not None else "—",
+                    str(sum(row["kernels"][k].values())) if k in row["kernels"] else "—",
+                    str(row["step_kernels"][k]),
+                    fmt_t(step),
+                    f"{fc['stages_per_step'] * field / step:.0%}" if field is not None else "—",
+                ]
+                + ([fmt_t(row["step"][f"{k}/Tsit5"])] if "Tsit5" in solvers else [])
+            )
         slope = kernel_slope(row)
-        L += [f"**{row['problem']}**", "",
-              table(["field", "one evaluation", "kernels per evaluation", "kernels per Tsit5u step",
-                     "Tsit5u step", "field's share of the step"] + ["diffrax Tsit5 step"] * ("Tsit5" in solvers),
-                    rows), "",
-              f"Least-squares slope of the Tsit5u step time on the kernels per step: {slope * 1e9:.0f} ns per kernel "
-              "(a launch cost where the field's share is small; where it is large the slope also carries the "
-              "field's arithmetic).",
-              ""]
+        L += [
+            f"**{row['problem']}**",
+            "",
+            table(
+                [
+                    "field",
+                    "one evaluation",
+                    "kernels per evaluation",
+                    "kernels per Tsit5u step",
+                    "Tsit5u step",
+                    "field's share of the step",
+                ]
+                + ["diffrax Tsit5 step"] * ("Tsit5" in solvers),
+                rows,
+            ),
+            "",
+            f"Least-squares slope of the Tsit5u step time on the kernels per step: {slope * 1e9:.0f} ns per kernel "
+            "(a launch cost where the field's share is small; where it is large the slope also carries the "
+            "field's arithmetic).",
+            "",
+        ]
     return L
 
 
 def build(R) -> tuple[str, dict]:
-    m = next((R[k]["machine"] for k in ("wp_variator", "overhead", "gradients", "throughput", "compile_time")
-              if R.get(k)), C.machine())
-    L = ["# jaxnh performance benchmarks (issue 4)", "",
-         "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`, "
-         "20–60 minutes on this 2-core machine, by its load); `make bench-quick` "
-         "(= `JAXNH_BENCH_OUT=benchmarks/quick python -m benchmarks.run_all --quick`) is the short version, "
-         "written to `benchmarks/quick/` so it does not overwrite these results. Every number below is written by "
-         "`benchmarks/report.py` from the `results/*.json` files beside this file.", "",
-         "## Machine and method", "",
-         f"* CPU: {m['cpu']}, {m['cores']} cores; {m['platform']}",
-         f"* Python {m['python']}, jax {m['jax']} (jaxlib {m['jaxlib']}), diffrax {m['diffrax']}, equinox "
-         f"{m['equinox']}, numpy {m['numpy']}, scipy {m['scipy']}, jaxnh {m['jaxnh']}; devices {m['devices']}",
-         f"* Load average when the runs started: {', '.join(f'{x:.1f}' for x in m['load_average'])} "
-         f"(the machine is shared); date {m['date']}",
-         f"* jaxnh revision: {m.get('jaxnh_revision', 'unknown')}",
-         f"* Each benchmark process pinned to one core (core {m.get('pinned_cpu')} for this file's header) and XLA "
-         f"flags `{m.get('xla_flags', '')}`: XLA's spinning thread pool otherwise inflated and scattered CPU times "
-         "(see `benchmarks/common.py`)",
-         "* Times are **process CPU time** (`time.process_time`), median over interleaved rounds after "
-         "compilation; wall-clock medians are in the JSON files. On this shared machine wall time mostly "
-         "measured waiting for a core (a 3.5 ms solve took 3.3–20 ms of wall time, 3.3–3.7 ms of CPU time). "
-         "Ratios are medians of per-round ratios of contenders timed in the same round. Compile times are "
-         "`jit(...).lower(...).compile()`, CPU and wall; first-call times come from fresh processes.",
-         "* \"Compiled solve\" is `simulate`'s jitted inner function `jaxnh._simulate._integrate` with the "
-         "tolerances traced (one compilation per contender); \"through simulate\" is a plain `nh.simulate(...)` "
-         "call, whose argument checks run in Python on every call.", ""]
+    m = next(
+        (R[k]["machine"] for k in ("wp_variator", "overhead", "gradients", "throughput", "compile_time") if R.get(k)),
+        C.machine(),
+    )
+    L = [
+        "# jaxnh performance benchmarks (issue 4)",
+        "",
+        "Regenerate everything (JSON, figures, this file) with `make bench` (= `python -m benchmarks.run_all`, "
+        "20–60 minutes on this 2-core machine, by its load); `make bench-quick` "
+        "(= `JAXNH_BENCH_OUT=benchmarks/quick python -m benchmarks.run_all --quick`) is the short version, "
+        "written to `benchmarks/quick/` so it does not overwrite these results. Every number below is written by "
+        "`benchmarks/report.py` from the `results/*.json` files beside this file.",
+        "",
+        "## Machine and method",
+        "",
+        f"* CPU: {m['cpu']}, {m['cores']} cores; {m['platform']}",
+        f"* Python {m['python']}, jax {m['jax']} (jaxlib {m['jaxlib']}), diffrax {m['diffrax']}, equinox "
+        f"{m['equinox']}, numpy {m['numpy']}, scipy {m['scipy']}, jaxnh {m['jaxnh']}; devices {m['devices']}",
+        f"* Load average when the runs started: {', '.join(f'{x:.1f}' for x in m['load_average'])} "
+        f"(the machine is shared); date {m['date']}",
+        f"* jaxnh revision: {m.get('jaxnh_revision', 'unknown')}",
+        f"* Each benchmark process pinned to one core (core {m.get('pinned_cpu')} for this file's header) and XLA "
+        f"flags `{m.get('xla_flags', '')}`: XLA's spinning thread pool otherwise inflated and scattered CPU times "
+        "(see `benchmarks/common.py`)",
+        "* Times are **process CPU time** (`time.process_time`), median over interleaved rounds after "
+        "compilation; wall-clock medians are in the JSON files. On this shared machine wall time mostly "
+        "measured waiting for a core (a 3.5 ms solve took 3.3–20 ms of wall time, 3.3–3.7 ms of CPU time). "
+        "Ratios are medians of per-round ratios of contenders timed in the same round. Compile times are "
+        "`jit(...).lower(...).compile()`, CPU and wall; first-call times come from fresh processes.",
+        '* "Compiled solve" is `simulate`\'s jitted inner function `jaxnh._simulate._integrate` with the '
+        'tolerances traced (one compilation per contender); "through simulate" is a plain `nh.simulate(...)` '
+        "call, whose argument checks run in Python on every call.",
+        "",
+    ]
     rows, head = targets(R)
     L += ["## Targets", "", table(["target", "goal", "measured", "met"], rows), ""]
     if R.get("wp_variator") or R.get("wp_generic"):
-        L += ["## Default solver", "", "`jaxnh._simulate.default_solver(rtol, operations, method)`: for a vector "
-              f"field of at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations in the appell "
-              "(or substituted) form, jaxnh's unrolled Tsit5 (Tsit5u), and diffrax Dopri8 for rtol < "
-              f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; for larger vector fields and for lagrange, diffrax's "
-              f"Tsit5, and Dopri8 for rtol < `DOPRI8_BELOW_RTOL_LOOPED` = {DOPRI8_BELOW_RTOL_LOOPED:g}. For each "
-              "sweep tolerance: the solver it picks, and how much slower it is than the fastest solver of the same "
-              "formulation at the error it reaches (times interpolated on the work-precision curves).", ""
-              ] + default_section(R)
+        L += [
+            "## Default solver",
+            "",
+            "`jaxnh._simulate.default_solver(rtol, operations, method)`: for a vector "
+            f"field of at most `UNROLL_MAX_OPERATIONS` = {UNROLL_MAX_OPERATIONS} JAX operations in the appell "
+            "(or substituted) form, jaxnh's unrolled Tsit5 (Tsit5u), and diffrax Dopri8 for rtol < "
+            f"`DOP853_BELOW_RTOL` = {DOP853_BELOW_RTOL:g}; for larger vector fields and for lagrange, diffrax's "
+            f"Tsit5, and Dopri8 for rtol < `DOPRI8_BELOW_RTOL_LOOPED` = {DOPRI8_BELOW_RTOL_LOOPED:g}. For each "
+            "sweep tolerance: the solver it picks, and how much slower it is than the fastest solver of the same "
+            "formulation at the error it reaches (times interpolated on the work-precision curves).",
+            "",
+        ] + default_section(R)
         rows, best = threshold_scan(R)
-        current = {"Tsit5u": ("DOP853_BELOW_RTOL", DOP853_BELOW_RTOL),
-                   "Tsit5": ("DOPRI8_BELOW_RTOL_LOOPED", DOPRI8_BELOW_RTOL_LOOPED)}
+        current = {
+            "Tsit5u": ("DOP853_BELOW_RTOL", DOP853_BELOW_RTOL),
+            "Tsit5": ("DOPRI8_BELOW_RTOL_LOOPED", DOPRI8_BELOW_RTOL_LOOPED),
+        }
         verdict = []
         for low, m in best.items():
             th = min(m, key=m.get)
             name, now = current[low]
-            same = " (the same)" if th == now else (
-                f" (mean slowdown {m[now]:.3f}× against {m[th]:.3f}×: within 1 %)" if m.get(now, 9) <= 1.01 * m[th]
-                else " (differs: see the closing note of issue 4)")
-            verdict.append(f"above θ {C.SOLVER_LABELS.get(low, low)}: smallest mean slowdown at θ = {th:g}; "
-                           f"`{name}` is {now:g}" + same)
+            same = (
+                " (the same)"
+                if th == now
+                else (
+                    f" (mean slowdown {m[now]:.3f}× against {m[th]:.3f}×: within 1 %)"
+                    if m.get(now, 9) <= 1.01 * m[th]
+                    else " (differs: see the closing note of issue 4)"
+                )
+            )
+            verdict.append(
+                f"above θ {C.SOLVER_LABELS.get(low, low)}: smallest mean slowdown at θ = {th:g}; "
+                f"`{name}` is {now:g}" + same
+            )
             head[f"best_threshold_{low}"] = th
-        L += ["**Where to switch.** Each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order solver "
-              "`default_solver` uses above it), its slowdown against the fastest solver of the same formulation "
-              "at the error reached: geometric mean / worst over the sweep; ◀ marks the threshold in use.", "",
-              table(rows[0], rows[1:]), "", "; ".join(verdict) + ".", ""]
+        L += [
+            "**Where to switch.** Each candidate switch point θ (Dopri8 for rtol < θ, the 5th-order solver "
+            "`default_solver` uses above it), its slowdown against the fastest solver of the same formulation "
+            "at the error reached: geometric mean / worst over the sweep; ◀ marks the threshold in use.",
+            "",
+            table(rows[0], rows[1:]),
+            "",
+            "; ".join(verdict) + ".",
+            "",
+        ]
     if R.get("wp_variator") or R.get("wp_generic"):
         L += ["## Work-precision", ""]
         if R.get("wp_variator"):
@@ -496,71 +674,192 @@ def build(R) -> tuple[str, dict]:
             L += wp_section(R["wp_generic"], "Generic mechanism (s = 10, m = 3)")
     ov = R.get("overhead")
     if ov:
-        L += ["## Cost of automatic derivation", "",
-              "Same solver, tolerance (rtol 1e-8, atol 1e-10) and report times; ratios to the hand-written equations "
-              "(eq. (9) for the variator, Lagrange's equations written out for the generic mechanism).", ""]
+        L += [
+            "## Cost of automatic derivation",
+            "",
+            "Same solver, tolerance (rtol 1e-8, atol 1e-10) and report times; ratios to the hand-written equations "
+            "(eq. (9) for the variator, Lagrange's equations written out for the generic mechanism).",
+            "",
+        ]
         rows = []
         for r in ov["rhs_cost"]:
-            rows.append([r["problem"], f"{r['horizon']:g} s", C.SOLVER_LABELS[r["solver"]], fmt_t(r["time"]["hand"]),
-                         fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"]),
-                         fmt_x(r["ratio"].get("appell jit(simulate)")),
-                         fmt_x(r["ratio"].get("appell through simulate")),
-                         fmt_t(r["simulate_overhead"]["appell"]),
-                         f"{r['compile']['hand']['cpu']:.1f} / {r['compile']['appell']['cpu']:.1f} / "
-                         f"{r['compile']['lagrange']['cpu']:.1f} s"])
-        L += [table(["problem", "horizon", "solver", "hand-written", "appell / hand", "lagrange / hand",
-                     "appell jit(simulate) / hand", "appell through simulate / hand", "simulate's per-call cost",
-                     "compile hand / appell / lagrange (CPU)"], rows), ""]
+            rows.append(
+                [
+                    r["problem"],
+                    f"{r['horizon']:g} s",
+                    C.SOLVER_LABELS[r["solver"]],
+                    fmt_t(r["time"]["hand"]),
+                    fmt_x(r["ratio"]["appell"]),
+                    fmt_x(r["ratio"]["lagrange"]),
+                    fmt_x(r["ratio"].get("appell jit(simulate)")),
+                    fmt_x(r["ratio"].get("appell through simulate")),
+                    fmt_t(r["simulate_overhead"]["appell"]),
+                    f"{r['compile']['hand']['cpu']:.1f} / {r['compile']['appell']['cpu']:.1f} / "
+                    f"{r['compile']['lagrange']['cpu']:.1f} s",
+                ]
+            )
+        L += [
+            table(
+                [
+                    "problem",
+                    "horizon",
+                    "solver",
+                    "hand-written",
+                    "appell / hand",
+                    "lagrange / hand",
+                    "appell jit(simulate) / hand",
+                    "appell through simulate / hand",
+                    "simulate's per-call cost",
+                    "compile hand / appell / lagrange (CPU)",
+                ],
+                rows,
+            ),
+            "",
+        ]
         if ov.get("records"):
-            L += ["### Pay for what you ask: recorded quantities", "",
-                  "Compiled solve in DOP853 at rtol 1e-8 with 1001 report times; time relative to `record=()`.", ""]
+            L += [
+                "### Pay for what you ask: recorded quantities",
+                "",
+                "Compiled solve in DOP853 at rtol 1e-8 with 1001 report times; time relative to `record=()`.",
+                "",
+            ]
             keys = list(ov["records"][0]["ratio"])
-            L += [table(["problem", "method", "record=() time"] + keys,
-                        [[r["problem"], r["method"], fmt_t(r["time"]["nothing"])] + [fmt_x(r["ratio"][k]) for k in keys]
-                         for r in ov["records"]]), ""]
+            L += [
+                table(
+                    ["problem", "method", "record=() time"] + keys,
+                    [
+                        [r["problem"], r["method"], fmt_t(r["time"]["nothing"])] + [fmt_x(r["ratio"][k]) for k in keys]
+                        for r in ov["records"]
+                    ],
+                ),
+                "",
+            ]
         if ov.get("rheonomic"):
-            L += ["### Pay for what you ask: time-invariant against rheonomic", "",
-                  "Generic mechanism, DOP853, rtol 1e-8: time per step (the step counts differ).", ""]
-            L += [table(["mechanism", "steps (appell/lagrange/hand)", "appell per step", "lagrange per step",
-                         "hand per step", "appell / hand", "lagrange / hand"],
-                        [["rheonomic" if r["rheonomic"] else "time-invariant",
-                          f"{r['steps']['appell']}/{r['steps']['lagrange']}/{r['steps']['hand']}",
-                          fmt_t(r["step_time"]["appell"]), fmt_t(r["step_time"]["lagrange"]),
-                          fmt_t(r["step_time"]["hand"]), fmt_x(r["ratio"]["appell"]), fmt_x(r["ratio"]["lagrange"])]
-                         for r in ov["rheonomic"]]), ""]
+            L += [
+                "### Pay for what you ask: time-invariant against rheonomic",
+                "",
+                "Generic mechanism, DOP853, rtol 1e-8: time per step (the step counts differ).",
+                "",
+            ]
+            L += [
+                table(
+                    [
+                        "mechanism",
+                        "steps (appell/lagrange/hand)",
+                        "appell per step",
+                        "lagrange per step",
+                        "hand per step",
+                        "appell / hand",
+                        "lagrange / hand",
+                    ],
+                    [
+                        [
+                            "rheonomic" if r["rheonomic"] else "time-invariant",
+                            f"{r['steps']['appell']}/{r['steps']['lagrange']}/{r['steps']['hand']}",
+                            fmt_t(r["step_time"]["appell"]),
+                            fmt_t(r["step_time"]["lagrange"]),
+                            fmt_t(r["step_time"]["hand"]),
+                            fmt_x(r["ratio"]["appell"]),
+                            fmt_x(r["ratio"]["lagrange"]),
+                        ]
+                        for r in ov["rheonomic"]
+                    ],
+                ),
+                "",
+            ]
     fc = R.get("field_cost")
     if fc:
         L += field_cost_section(fc)
     tp = R.get("throughput")
     if tp:
-        L += ["## Batch throughput", "", f"Variator, rtol {tp['rtol']:g}, `jit(vmap(...))`; figure "
-              "`figures/throughput.png`. Per-trajectory time = batch time / batch size.", ""]
-        L += [table(["contender", "batch", "per trajectory (CPU)", "per trajectory (wall)", "max steps in batch",
-                     "error (member 0)", "compile (CPU)"],
-                    [[f"{r['kind']}, {C.SOLVER_LABELS[r['solver']]}", r["batch"], fmt_t(r["per_trajectory"]),
-                      fmt_t(r["per_trajectory_wall"]), r["max_steps_in_batch"], f"{r['error_member0']:.1e}",
-                      f"{r['compile']['cpu']:.1f} s"] for r in tp["rows"]]), ""]
+        L += [
+            "## Batch throughput",
+            "",
+            f"Variator, rtol {tp['rtol']:g}, `jit(vmap(...))`; figure "
+            "`figures/throughput.png`. Per-trajectory time = batch time / batch size.",
+            "",
+        ]
+        L += [
+            table(
+                [
+                    "contender",
+                    "batch",
+                    "per trajectory (CPU)",
+                    "per trajectory (wall)",
+                    "max steps in batch",
+                    "error (member 0)",
+                    "compile (CPU)",
+                ],
+                [
+                    [
+                        f"{r['kind']}, {C.SOLVER_LABELS[r['solver']]}",
+                        r["batch"],
+                        fmt_t(r["per_trajectory"]),
+                        fmt_t(r["per_trajectory_wall"]),
+                        r["max_steps_in_batch"],
+                        f"{r['error_member0']:.1e}",
+                        f"{r['compile']['cpu']:.1f} s",
+                    ]
+                    for r in tp["rows"]
+                ],
+            ),
+            "",
+        ]
     gr = R.get("gradients")
     if gr:
-        L += ["## Gradients", "", f"Variator, {C.SOLVER_LABELS[gr['solver']]}, rtol {gr['rtol']:g}: time of the "
-              "gradient of a trajectory loss divided by the time of the loss (one forward solve), median of "
-              "per-round ratios; figure `figures/gradients.png`. All modes agree to the relative difference "
-              "shown (they differentiate the same discrete solution).", ""]
+        L += [
+            "## Gradients",
+            "",
+            f"Variator, {C.SOLVER_LABELS[gr['solver']]}, rtol {gr['rtol']:g}: time of the "
+            "gradient of a trajectory loss divided by the time of the loss (one forward solve), median of "
+            "per-round ratios; figure `figures/gradients.png`. All modes agree to the relative difference "
+            "shown (they differentiate the same discrete solution).",
+            "",
+        ]
         modes = list(dict.fromkeys(k for r in gr["rows"] for k in r["ratio"] if k != "forward solve"))
-        L += [table(["P", "forward solve"] + modes + ["max rel. difference to reverse", "compile (CPU) RC / FS"],
-                    [[r["P"], fmt_t(r["time"]["forward solve"])] + [fmt_x(r["ratio"].get(k)) for k in modes]
-                     + [f"{max(r['relative_difference_to_reverse'].values()):.0e}",
+        L += [
+            table(
+                ["P", "forward solve"] + modes + ["max rel. difference to reverse", "compile (CPU) RC / FS"],
+                [
+                    [r["P"], fmt_t(r["time"]["forward solve"])]
+                    + [fmt_x(r["ratio"].get(k)) for k in modes]
+                    + [
+                        f"{max(r['relative_difference_to_reverse'].values()):.0e}",
                         f"{r['compile']['reverse RecursiveCheckpoint']['cpu']:.1f} / "
-                        f"{r['compile']['ForwardSensitivity']['cpu']:.1f} s"]
-                     for r in sorted(gr["rows"], key=lambda r: r["P"])]), ""]
+                        f"{r['compile']['ForwardSensitivity']['cpu']:.1f} s",
+                    ]
+                    for r in sorted(gr["rows"], key=lambda r: r["P"])
+                ],
+            ),
+            "",
+        ]
     ct = R.get("compile_time")
     if ct:
-        L += ["## First-call time (fresh process)", "",
-              table(["scenario", "import", "first call (CPU / wall)", "second call (CPU)",
-                     "compile = first − second (CPU / wall)"],
-                    [[r["label"], f"{r['import_s']:.1f} s", f"{r['first']['cpu']:.2f} / {r['first']['wall']:.2f} s",
-                      fmt_t(r["second"]["cpu"]), f"{r['compile']['cpu']:.2f} / {r['compile']['wall']:.2f} s"]
-                     for r in ct["rows"] if "error" not in r]), ""]
+        L += [
+            "## First-call time (fresh process)",
+            "",
+            table(
+                [
+                    "scenario",
+                    "import",
+                    "first call (CPU / wall)",
+                    "second call (CPU)",
+                    "compile = first − second (CPU / wall)",
+                ],
+                [
+                    [
+                        r["label"],
+                        f"{r['import_s']:.1f} s",
+                        f"{r['first']['cpu']:.2f} / {r['first']['wall']:.2f} s",
+                        fmt_t(r["second"]["cpu"]),
+                        f"{r['compile']['cpu']:.2f} / {r['compile']['wall']:.2f} s",
+                    ]
+                    for r in ct["rows"]
+                    if "error" not in r
+                ],
+            ),
+            "",
+        ]
     from . import field_size, lean_loop  # issue 16: the integration loop and the size of a vector field
 
     L += lean_loop.section(R.get("lean_loop"))
@@ -568,14 +867,29 @@ def build(R) -> tuple[str, dict]:
     others = [(p, C.HERE / p) for p in ("STABILITY.md", "CALIBRATION.md", "SWEEP.md")]
     present = [p for p, path in others if path.exists()]
     if present:
-        L += ["## Other benchmark reports", "", "Written by their own scripts (run by `run_all` when present): "
-              + ", ".join(f"[{p}]({os.path.relpath(C.HERE / p, C.OUT)})" for p in present) + ".", ""]
+        L += [
+            "## Other benchmark reports",
+            "",
+            "Written by their own scripts (run by `run_all` when present): "
+            + ", ".join(f"[{p}]({os.path.relpath(C.HERE / p, C.OUT)})" for p in present)
+            + ".",
+            "",
+        ]
     return "\n".join(L) + "\n", head
 
 
 def main():
-    names = ("wp_variator", "wp_generic", "overhead", "field_cost", "throughput", "gradients", "compile_time",
-             "lean_loop", "field_size")
+    names = (
+        "wp_variator",
+        "wp_generic",
+        "overhead",
+        "field_cost",
+        "throughput",
+        "gradients",
+        "compile_time",
+        "lean_loop",
+        "field_size",
+    )
     R = {k: C.load(k) for k in names}
     C.FIGURES.mkdir(parents=True, exist_ok=True)
     for k in ("wp_variator", "wp_generic"):

@@ -23,16 +23,29 @@ import time
 from . import common as C
 
 
-OURS = ["work_precision", "overhead", "field_cost", "throughput", "gradients", "compile_time", "lean_loop",
-        "field_size"]
+OURS = [
+    "work_precision",
+    "overhead",
+    "field_cost",
+    "throughput",
+    "gradients",
+    "compile_time",
+    "lean_loop",
+    "field_size",
+]
 OTHERS = ["stability", "calibration", "sweep_bench", "bicycle_cost"]
 
 
 def _quick_flag(module: str) -> list:
     """The quick option a script offers (from its --help), if any."""
     try:
-        out = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--help"], capture_output=True, text=True,
-                             cwd=str(C.HERE.parent), timeout=120)
+        out = subprocess.run(
+            [sys.executable, "-m", f"benchmarks.{module}", "--help"],
+            capture_output=True,
+            text=True,
+            cwd=str(C.HERE.parent),
+            timeout=120,
+        )
     except subprocess.TimeoutExpired:
         return []
     return ["--quick"] if "--quick" in out.stdout else []
@@ -71,8 +84,11 @@ def main(argv=None):
     log.append(run("report", []))
     C.save("run_all", dict(runs=log, quick=a.quick, seconds=time.perf_counter() - t0))
     failed = [r["module"] for r in log if r["returncode"] != 0]
-    C.log(f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
-          + (f"FAILED: {failed}" if failed else "all ok") + f"; see {C.OUT / 'RESULTS.md'}")
+    C.log(
+        f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
+        + (f"FAILED: {failed}" if failed else "all ok")
+        + f"; see {C.OUT / 'RESULTS.md'}"
+    )
     sys.exit(1 if failed else 0)
 
 

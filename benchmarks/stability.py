@@ -240,21 +240,41 @@ def long_horizon(n_periods, results, quick):
             eT = np.abs(np.asarray(sol.energy) - T_ex) / T_ex
             eq = np.max(np.abs(np.asarray(sol.q)[whole] - q_ex[whole])) / np.max(np.abs(q_ex))
             eqd = np.max(np.abs(np.asarray(sol.qd) - qd_ex)) / np.max(np.abs(qd_ex))
-            first = res[1: max(2, n // 100)].max()
-            last = res[-max(1, n // 10):].max()
-            rows.append([kind, name, short_status(sol), steps, rej, f"{wall:.2f}",
-                         fmt(first), fmt(last), fmt(float(eT.max())), fmt(float(eq)), fmt(float(eqd))])
+            first = res[1 : max(2, n // 100)].max()
+            last = res[-max(1, n // 10) :].max()
+            rows.append(
+                [
+                    kind,
+                    name,
+                    short_status(sol),
+                    steps,
+                    rej,
+                    f"{wall:.2f}",
+                    fmt(first),
+                    fmt(last),
+                    fmt(float(eT.max())),
+                    fmt(float(eq)),
+                    fmt(float(eqd)),
+                ]
+            )
             curves[(kind, name)] = (np.asarray(ts), res, eT)
-            results["long"][(kind, name)] = dict(first=first, last=last, eT=float(eT.max()), eq=float(eq),
-                                                 eqd=float(eqd), steps=steps, wall=wall)
-            print(f"  long {kind:6s} {name:28s} steps {steps:7d} res {first:.1e}→{last:.1e} eT {eT.max():.1e} "
-                  f"eq {eq:.1e} {wall:.1f}s", flush=True)
+            results["long"][(kind, name)] = dict(
+                first=first, last=last, eT=float(eT.max()), eq=float(eq), eqd=float(eqd), steps=steps, wall=wall
+            )
+            print(
+                f"  long {kind:6s} {name:28s} steps {steps:7d} res {first:.1e}→{last:.1e} eT {eT.max():.1e} "
+                f"eq {eq:.1e} {wall:.1f}s",
+                flush=True,
+            )
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    for what, idx, ylabel, fname in [("residual", 1, "|U21 phi1' − phi2'|, rad/s", "stability_long_residual.png"),
-                                     ("energy", 2, "|T − T_exact| / T_exact", "stability_long_energy.png")]:
+    for what, idx, ylabel, fname in [
+        ("residual", 1, "|U21 phi1' − phi2'|, rad/s", "stability_long_residual.png"),
+        ("energy", 2, "|T − T_exact| / T_exact", "stability_long_energy.png"),
+    ]:
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         for ax, kind in zip(axes, ("free", "driven")):
             for name, _ in LONG_VARIANTS:
@@ -270,8 +290,22 @@ def long_horizon(n_periods, results, quick):
         fig.tight_layout()
         fig.savefig(FIG / fname, dpi=110)
         plt.close(fig)
-    return table(["case", "formulation", "status", "steps", "rejected", "run s", "residual (first 1 %)",
-                  "residual (last 10 %)", "max energy error", "angle error", "speed error"], rows)
+    return table(
+        [
+            "case",
+            "formulation",
+            "status",
+            "steps",
+            "rejected",
+            "run s",
+            "residual (first 1 %)",
+            "residual (last 10 %)",
+            "max energy error",
+            "angle error",
+            "speed error",
+        ],
+        rows,
+    )
 
 
 # --- B. stress cases per solver --------------------------------------------------
@@ -293,8 +327,9 @@ def radau_damped(rate, ts):
         M1 = 0.3 + 0.2 / np.sqrt(0.07) * np.sqrt(I) * np.cos(2 * np.pi * t / 1.3)
         return [(M1 - 0.1 * U - rate * (0.02 + 0.05 * U**2) * y[0] - 0.05 * U * dU * y[0]) / I, y[0], U * y[0]]
 
-    return solve_ivp(rhs, (0.0, float(ts[-1])), [W0, 0.0, 0.0], method="Radau", rtol=1e-11, atol=1e-13,
-                     t_eval=np.asarray(ts)).y[0]
+    return solve_ivp(
+        rhs, (0.0, float(ts[-1])), [W0, 0.0, 0.0], method="Radau", rtol=1e-11, atol=1e-13, t_eval=np.asarray(ts)
+    ).y[0]
 
 
 N_STRESS = 201
@@ -304,7 +339,7 @@ def stress_cases(quick):
     """(label, params, ts, reference phi1'(ts), reference T(ts) or None)."""
     cases = []
     ts1 = jnp.linspace(0.0, 1.0, N_STRESS)
-    for width in ([1e-1, 1e-3, 1e-4] if quick else [1e-1, 1e-2, 1e-3, 1e-4]):
+    for width in [1e-1, 1e-3, 1e-4] if quick else [1e-1, 1e-2, 1e-3, 1e-4]:
         U = Ratio(0.1, rise=9.9, mid=0.7771, width=width)
         p = driven(U, tau=0.3, omega=6 * np.pi)
         cases.append((f"tanh step 0.1→10, width {width:g} of the run, driven", p, ts1, *exact_speed(p, ts1)))
@@ -312,13 +347,13 @@ def stress_cases(quick):
     p = driven(U, tau=0.0, omega=6 * np.pi)
     cases.append(("tanh step 0.1→10, width 1e-4, no torques", p, ts1, *exact_speed(p, ts1)))
     ts3 = jnp.linspace(0.0, 3.0, N_STRESS)
-    for r in ([1e-6, 1, 1e6] if quick else [1e-6, 1e-3, 1, 1e3, 1e6]):
+    for r in [1e-6, 1, 1e6] if quick else [1e-6, 1e-3, 1, 1e3, 1e6]:
         J1, J2 = 0.05 * r, 0.05
         U = Ratio(1.0, a1=0.4, omega=np.pi)
         p = driven(U, tau=0.5 * np.sqrt(J1 + J2) * W0 * 2 * np.pi, omega=2 * np.pi, J1=J1, J2=J2)
         cases.append((f"J1/J2 = {r:g}", p, ts3, *exact_speed(p, ts3)))
     ts4 = jnp.linspace(0.0, 4.0, N_STRESS)
-    for rate in ([1e2, 1e5] if quick else [1e2, 1e4, 1e5]):
+    for rate in [1e2, 1e5] if quick else [1e2, 1e4, 1e5]:
         U = Ratio(1.0, a1=0.4, omega=np.pi)
         M1 = Torque(0.3, tau=0.2 / np.sqrt(0.07), omega=2 * np.pi / 1.3, J1=0.02, J2=0.05, U=U)
         p = params(U=U, M1=M1, M2=-0.1, damping=(rate * 0.02, rate * 0.05))
@@ -333,12 +368,14 @@ def skipped_transition(results):
     ts = jnp.linspace(0.0, 1.0, N_STRESS)
     w, _ = exact_speed(p, ts)
     rows = []
-    for name, kw in [("appell", dict(method="appell")),
-                     ("lagrange", dict(method="lagrange")),
-                     ("lagrange + baumgarte", dict(method="lagrange", stabilization="baumgarte")),
-                     ("lagrange + projection", dict(method="lagrange", stabilization="projection")),
-                     ("lagrange, step_ts=[centre of the step]", dict(method="lagrange", step_ts=jnp.array([0.7771]))),
-                     ("lagrange, dtmax=1e-3 s", dict(method="lagrange", dtmax=1e-3))]:
+    for name, kw in [
+        ("appell", dict(method="appell")),
+        ("lagrange", dict(method="lagrange")),
+        ("lagrange + baumgarte", dict(method="lagrange", stabilization="baumgarte")),
+        ("lagrange + projection", dict(method="lagrange", stabilization="projection")),
+        ("lagrange, step_ts=[centre of the step]", dict(method="lagrange", step_ts=jnp.array([0.7771]))),
+        ("lagrange, dtmax=1e-3 s", dict(method="lagrange", dtmax=1e-3)),
+    ]:
         sol = simulate(p, ts, **kw)
         err = float(np.max(np.abs(np.asarray(sol.qd[:, 0]) - w)) / np.max(np.abs(w)))
         res = float(np.max(np.abs(np.asarray(sol.residual))))
@@ -384,9 +421,11 @@ def near_zero(results):
         U = Ratio(eps + (2 - eps) / 2, a1=(2 - eps) / 2, omega=np.pi, phi1=np.pi / 2)
         p = driven(U, tau=0.0, omega=np.pi)
         w, T = exact_speed(p, ts)
-        for name, kw in [("lagrange", dict(method="lagrange")),
-                         ("appell, phi1' independent", dict(method="appell", independent=(0,))),
-                         ("appell, split chosen at t=0 (phi2' independent)", dict(method="appell", independent=(1,)))]:
+        for name, kw in [
+            ("lagrange", dict(method="lagrange")),
+            ("appell, phi1' independent", dict(method="appell", independent=(0,))),
+            ("appell, split chosen at t=0 (phi2' independent)", dict(method="appell", independent=(1,))),
+        ]:
             sol = simulate(p, ts, **kw)
             steps, _ = stats(sol)
             ok = bool(sol.success)
@@ -415,7 +454,7 @@ def baumgarte(results):
         sol = simulate(p, ts, **kw)
         steps, rej = stats(sol)
         ok = bool(sol.success)
-        res = float(np.max(np.abs(np.asarray(sol.residual)[len(ts) // 2:]))) if ok else None
+        res = float(np.max(np.abs(np.asarray(sol.residual)[len(ts) // 2 :]))) if ok else None
         eqd = float(np.max(np.abs(np.asarray(sol.qd) - qd_ex)) / np.max(np.abs(qd_ex))) if ok else None
         label = "none" if factor is None else f"{factor * default:g}"
         results["baumgarte"][label] = dict(steps=steps, res=res, eqd=eqd, ok=ok)
@@ -431,17 +470,24 @@ def redundant_and_failures(results, quick):
     p = long_case("driven")
     ts = jnp.linspace(0.0, 3.0, N_STRESS)
     w, _ = exact_speed(p, ts)
-    variants = [("lagrange", dict(method="lagrange")),
-                ("lagrange + baumgarte", dict(method="lagrange", stabilization="baumgarte")),
-                ("lagrange + projection", dict(method="lagrange", stabilization="projection"))]
+    variants = [
+        ("lagrange", dict(method="lagrange")),
+        ("lagrange + baumgarte", dict(method="lagrange", stabilization="baumgarte")),
+        ("lagrange + projection", dict(method="lagrange", stabilization="projection")),
+    ]
     for name, kw in variants[:1] if quick else variants:
         sol = simulate(p, ts, mech=MECH_REDUNDANT, record=("residual", "multipliers"), **kw)
         lam = np.asarray(sol.multipliers)
-        rows.append([f"constraint given twice (c, 2c): {name}", "ok" if bool(sol.success) else sol.message,
-                     f"speed error {np.max(np.abs(np.asarray(sol.qd[:, 0]) - w)) / W0:.1e}, residual "
-                     f"{np.max(np.abs(np.asarray(sol.residual))):.1e}, "
-                     f"multipliers finite: {bool(np.all(np.isfinite(lam)))}, "
-                     f"λ2/λ1 = {np.median(lam[1:, 1] / lam[1:, 0]):.6f}"])
+        rows.append(
+            [
+                f"constraint given twice (c, 2c): {name}",
+                "ok" if bool(sol.success) else sol.message,
+                f"speed error {np.max(np.abs(np.asarray(sol.qd[:, 0]) - w)) / W0:.1e}, residual "
+                f"{np.max(np.abs(np.asarray(sol.residual))):.1e}, "
+                f"multipliers finite: {bool(np.all(np.isfinite(lam)))}, "
+                f"λ2/λ1 = {np.median(lam[1:, 1] / lam[1:, 0]):.6f}",
+            ]
+        )
     try:
         simulate(p, ts, mech=MECH_REDUNDANT, method="appell")
         rows.append(["constraint given twice: appell", "ran (unexpected)", ""])
@@ -453,16 +499,36 @@ def redundant_and_failures(results, quick):
     ts2 = jnp.linspace(0.0, 2.0, N_STRESS)
     for method in ("lagrange", "appell"):
         rec = RECORD + (("multipliers",) if method == "lagrange" else ())
-        sol = nh.simulate(MECH_VANISHING, pz, jnp.zeros(2), jnp.array([W0, W0]), ts2, method=method, throw=False,
-                          record=rec, max_steps=MAX_STEPS, rtol=jnp.asarray(1e-8), atol=jnp.asarray(1e-10))
+        sol = nh.simulate(
+            MECH_VANISHING,
+            pz,
+            jnp.zeros(2),
+            jnp.array([W0, W0]),
+            ts2,
+            method=method,
+            throw=False,
+            record=rec,
+            max_steps=MAX_STEPS,
+            rtol=jnp.asarray(1e-8),
+            atol=jnp.asarray(1e-10),
+        )
         w_exact = W0 + 0.2 / 0.07 * np.asarray(ts2)
-        detail = (f"speed error {np.max(np.abs(np.asarray(sol.qd) - w_exact[:, None])) / W0:.1e}, residual "
-                  f"{np.max(np.abs(np.asarray(sol.residual))):.1e}" if bool(sol.success) else sol.message)
+        detail = (
+            f"speed error {np.max(np.abs(np.asarray(sol.qd) - w_exact[:, None])) / W0:.1e}, residual "
+            f"{np.max(np.abs(np.asarray(sol.residual))):.1e}"
+            if bool(sol.success)
+            else sol.message
+        )
         if method == "lagrange" and bool(sol.success):
             lam = np.abs(np.asarray(sol.multipliers[:, 0]))
             detail += f"; |λ| from {lam[0]:.2g} at t = 0 to {lam.max():.3g} at the report time nearest U21 = 0"
-        rows.append([f"constraint row U21(t)(phi1' − phi2') vanishing at t = 1 s (U21 through 0): {method}",
-                     "ok" if bool(sol.success) else "failed status", detail])
+        rows.append(
+            [
+                f"constraint row U21(t)(phi1' − phi2') vanishing at t = 1 s (U21 through 0): {method}",
+                "ok" if bool(sol.success) else "failed status",
+                detail,
+            ]
+        )
     bad = params(J2=float("nan"))
     try:
         simulate(bad, ts)
@@ -476,24 +542,47 @@ def redundant_and_failures(results, quick):
 
     st, allnan = jax.vmap(one)(jnp.array([0.05, jnp.nan]))
     flagged = np.asarray(st == nh.STATUS.non_finite_input)
-    rows.append(["NaN parameter in one member of a vmapped batch",
-                 "status non_finite_input" if flagged[1] else "NOT flagged",
-                 f"outputs all NaN: {bool(allnan[1])}; other member successful: "
-                 f"{bool(np.asarray(st == nh.STATUS.successful)[0])}"])
+    rows.append(
+        [
+            "NaN parameter in one member of a vmapped batch",
+            "status non_finite_input" if flagged[1] else "NOT flagged",
+            f"outputs all NaN: {bool(allnan[1])}; other member successful: "
+            f"{bool(np.asarray(st == nh.STATUS.successful)[0])}",
+        ]
+    )
     ts15 = jnp.linspace(0.0, 1.5, N_STRESS)
     for method in ("lagrange", "appell"):
         sol = simulate(params(dJ1=-0.02), ts15, method)
-        rows.append([f"J1(t) = 0.02 − 0.02 t reaches 0 at t = 1 s: {method}",
-                     "ok" if bool(sol.success) else "failed status",
-                     sol.message if not bool(sol.success) else "reduced inertia J1 + J2 U21² stays positive"])
+        rows.append(
+            [
+                f"J1(t) = 0.02 − 0.02 t reaches 0 at t = 1 s: {method}",
+                "ok" if bool(sol.success) else "failed status",
+                sol.message if not bool(sol.success) else "reduced inertia J1 + J2 U21² stays positive",
+            ]
+        )
     if results.get("step_limit_message"):
         rows.append(["damping 1e5/s with Tsit5: step limit", "failed status", results["step_limit_message"]])
-    sol = nh.simulate(MECH, params(), jnp.zeros(2), jnp.array([1e160, 1e160]), ts, throw=False, record=RECORD,
-                      max_steps=MAX_STEPS, rtol=jnp.asarray(1e-8), atol=jnp.asarray(1e-10))
+    sol = nh.simulate(
+        MECH,
+        params(),
+        jnp.zeros(2),
+        jnp.array([1e160, 1e160]),
+        ts,
+        throw=False,
+        record=RECORD,
+        max_steps=MAX_STEPS,
+        rtol=jnp.asarray(1e-8),
+        atol=jnp.asarray(1e-10),
+    )
     finite = bool(np.all(np.isfinite(np.asarray(sol.energy))))
     results["overflow_silent"] = bool(sol.success) and not finite
-    rows.append(["speed 1e160 rad/s: T overflows", "ok" if bool(sol.success) else "failed status",
-                 f"energy finite: {finite}; {sol.message}"])
+    rows.append(
+        [
+            "speed 1e160 rad/s: T overflows",
+            "ok" if bool(sol.success) else "failed status",
+            f"energy finite: {finite}; {sol.message}",
+        ]
+    )
     return table(["case", "outcome", "detail"], [[r[0], r[1], r[2].replace("|", "/").replace("\n", " ")] for r in rows])
 
 
@@ -546,12 +635,17 @@ def precision(results, quick):
             ok = bool(sol.success)
             res = np.abs(np.asarray(sol.residual, np.float64))
             eT = float(np.max(np.abs(np.asarray(sol.energy, np.float64) - T_ex) / T_ex)) if ok else None
-            eq = (float(np.max(np.abs(np.asarray(sol.q, np.float64)[whole] - q_ex[whole])) / np.max(np.abs(q_ex)))
-                  if ok else None)
+            eq = (
+                float(np.max(np.abs(np.asarray(sol.q, np.float64)[whole] - q_ex[whole])) / np.max(np.abs(q_ex)))
+                if ok
+                else None
+            )
             results["f32_long"][name] = dict(res=float(res.max()), eT=eT, eq=eq, ok=ok)
-            rows32.append([name, short_status(sol), stats(sol)[0], fmt(float(res.max()) if ok else None), fmt(eT),
-                           fmt(eq)])
+            rows32.append(
+                [name, short_status(sol), stats(sol)[0], fmt(float(res.max()) if ok else None), fmt(eT), fmt(eq)]
+            )
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -569,8 +663,11 @@ def precision(results, quick):
     fig.savefig(FIG / "stability_float32.png", dpi=110)
     plt.close(fig)
     t1 = table(["dtype", "formulation", "rtol", "steps", "angle error", "speed error", "max residual"], rows)
-    t2 = (table(["float32, rtol 1e-5", "status", "steps", "max residual", "max energy error", "angle error"], rows32)
-          if rows32 else "(full run only)")
+    t2 = (
+        table(["float32, rtol 1e-5", "status", "steps", "max residual", "max energy error", "angle error"], rows32)
+        if rows32
+        else "(full run only)"
+    )
     return t1, t2, n_periods
 
 
@@ -604,17 +701,30 @@ def main(argv=None):
     elapsed = time.perf_counter() - start
     cpu = resource.getrusage(resource.RUSAGE_SELF)
     print(f"wall {elapsed:.0f} s, CPU {cpu.ru_utime + cpu.ru_stime:.0f} s", flush=True)
-    text = report(args, results, n_periods, n32, t_long, t_stress + "\n\n" + "Free motion across the width-1e-4 step, "
-                  "Tsit5 — the formulations and the remedies:\n\n" + t_skip, t_zero, t_baum, t_fail, t_prec,
-                  t_f32long, elapsed)
+    text = report(
+        args,
+        results,
+        n_periods,
+        n32,
+        t_long,
+        t_stress + "\n\n" + "Free motion across the width-1e-4 step, "
+        "Tsit5 — the formulations and the remedies:\n\n" + t_skip,
+        t_zero,
+        t_baum,
+        t_fail,
+        t_prec,
+        t_f32long,
+        elapsed,
+    )
     pathlib.Path(args.out).write_text(text)
     print(f"wrote {args.out} in {elapsed:.0f} s")
 
 
 def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_prec, t_f32long, elapsed):
     L = R["long"]
-    lag, bau, pro, app = (L[("driven", k)]
-                          for k in ("lagrange", "lagrange + baumgarte", "lagrange + projection", "appell"))
+    lag, bau, pro, app = (
+        L[("driven", k)] for k in ("lagrange", "lagrange + baumgarte", "lagrange + projection", "appell")
+    )
     sub = L.get(("free", "substituted (wrong, eq. 16)"))
     S = R["stress"]
     skip_lag = S.get(("tanh step 0.1→10, width 1e-4, no torques", "lagrange", "Tsit5"))
@@ -622,8 +732,10 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
     nz = R["near_zero"]
     tsit = {k[0]: v for k, v in S.items() if k[1] == "appell" and k[2] == "Tsit5" and v}
     steep = [v for k, v in tsit.items() if k.startswith("tanh") and "driven" in k]
-    steep_steps = (tsit["tanh step 0.1→10, width 0.1 of the run, driven"]["steps"],
-                   tsit["tanh step 0.1→10, width 0.0001 of the run, driven"]["steps"])
+    steep_steps = (
+        tsit["tanh step 0.1→10, width 0.1 of the run, driven"]["steps"],
+        tsit["tanh step 0.1→10, width 0.0001 of the run, driven"]["steps"],
+    )
     steep_err = max(v["err"] for v in steep)
     jr = [v for k, v in S.items() if k[0].startswith("J1/J2") and k[2] == "Tsit5" and v]
     jr_steps, jr_err = [v["steps"] for v in jr], [v["err"] for v in jr]
@@ -671,21 +783,26 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         f"for {bau['steps'] / lag['steps']:.2f}× the steps; projection holds it at rounding "
         f"({pro['last']:.1e}) with the same steps (one extra right-hand side and a projection per step); "
         f"Appell cannot drift ({app['last']:.1e}).",
-        (f"* Projection's run time ({pro['wall']:.1f} s against {lag['wall']:.1f} s) includes a "
-         f"compilation: a repeated identical call took {R['projection_repeat'][1]:.1f} s "
-         f"(first call {R['projection_repeat'][0]:.1f} s), because the projection map is rebuilt as a "
-         "new closure on every call (fixed by the issue 5 patch)."
-         if R.get("projection_repeat") and R["projection_repeat"][1] > 0.3 * R["projection_repeat"][0]
-         else "* A repeated projection call reuses its compiled solve."),
+        (
+            f"* Projection's run time ({pro['wall']:.1f} s against {lag['wall']:.1f} s) includes a "
+            f"compilation: a repeated identical call took {R['projection_repeat'][1]:.1f} s "
+            f"(first call {R['projection_repeat'][0]:.1f} s), because the projection map is rebuilt as a "
+            "new closure on every call (fixed by the issue 5 patch)."
+            if R.get("projection_repeat") and R["projection_repeat"][1] > 0.3 * R["projection_repeat"][0]
+            else "* A repeated projection call reuses its compiled solve."
+        ),
         f"* Accuracy against the exact motion is not worse with stabilisation: speed error "
         f"{lag['eqd']:.1e} (none), {bau['eqd']:.1e} (Baumgarte), {pro['eqd']:.1e} (projection); "
         f"energy error {lag['eT']:.1e}, {bau['eT']:.1e}, {pro['eT']:.1e} (Baumgarte's extra steps and the "
         "removed drift both help). At equal rtol Appell's global error was the largest, "
         f"{app['eqd']:.1e} (speed) and {app['eT']:.1e} (energy): its step control sees three state "
         "components (q, phi1') instead of four, so tighten rtol for the same accuracy.",
-        (f"* The paper's substituted equation (16) changes the conserved energy by {sub['eT']:.0%} — the "
-         "formulation error, not a numerical one." if sub else "* (The substituted equation (16) is run in the "
-         "full benchmark only.)"),
+        (
+            f"* The paper's substituted equation (16) changes the conserved energy by {sub['eT']:.0%} — the "
+            "formulation error, not a numerical one."
+            if sub
+            else "* (The substituted equation (16) is run in the full benchmark only.)"
+        ),
         "",
         "## B. Stress cases, per solver",
         "",
@@ -703,9 +820,12 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "vector field sees the ratio only through U21', which is "
         "zero to rounding away from the step, so the controller grows the step and can jump the whole "
         "transition: "
-        + (f"Tsit5 took {skip_lag['steps']} steps with error {skip_lag['err']:.0e} — a wrong answer with a "
-           f"success status, exposed by the recorded residual ({R['skip']['lagrange']['res']:.0e})."
-           if skip_lag else "the solve did not succeed.")
+        + (
+            f"Tsit5 took {skip_lag['steps']} steps with error {skip_lag['err']:.0e} — a wrong answer with a "
+            f"success status, exposed by the recorded residual ({R['skip']['lagrange']['res']:.0e})."
+            if skip_lag
+            else "the solve did not succeed."
+        )
         + " Appell and Baumgarte evaluate U21 itself at every stage; projection counts its correction as "
         f"error and rejects the jumping step (speed errors {R['skip']['appell']['err']:.0e}, "
         f"{R['skip']['lagrange + baumgarte']['err']:.0e}, {R['skip']['lagrange + projection']['err']:.0e}). "
@@ -719,9 +839,12 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         f"≤ {max(jr_err):.0e} for every ratio in float64 (float32: section G).",
         "* **Strong viscous damping** (stiff, relaxation rate up to 1e5/s): explicit solvers are "
         "stability-limited and hit `max_steps`; the failure message gives the implicit-solver advice. "
-        + (f"Kvaerno5 with the Newton root finder: {kv_newton['steps']} steps; with diffrax's default chord "
-           f"iteration {kv_chord['steps']} steps ({kv_chord['rej']} rejected) on the multiplier form. "
-           if kv_newton and kv_chord else "")
+        + (
+            f"Kvaerno5 with the Newton root finder: {kv_newton['steps']} steps; with diffrax's default chord "
+            f"iteration {kv_chord['steps']} steps ({kv_chord['rej']} rejected) on the multiplier form. "
+            if kv_newton and kv_chord
+            else ""
+        )
         + "Recommendation: `diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol))`. "
         "Kvaerno5 reports at `ts` through a cubic Hermite interpolant, so tighten rtol when values between "
         "steps matter.",
@@ -753,12 +876,18 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "",
         "* The residual level falls with α, but α h must stay in the explicit solver's stability region, "
         "so a large rate makes the problem stiff: "
-        + (f"from α = {first_fail[0]}/s on, Tsit5 hit the step limit. " if first_fail else
-           f"the most steps were {stiff_b[1]['steps']:,} at α = {stiff_b[0]}/s. ")
+        + (
+            f"from α = {first_fail[0]}/s on, Tsit5 hit the step limit. "
+            if first_fail
+            else f"the most steps were {stiff_b[1]['steps']:,} at α = {stiff_b[0]}/s. "
+        )
         + "The default rate is one over the report interval, so reporting much more densely than the "
         "motion needs raises it"
-        + (f" (here report intervals below {1 / float(first_fail[0]) * 1e3:g} ms would give α ≥ "
-           f"{first_fail[0]}/s)" if first_fail else "")
+        + (
+            f" (here report intervals below {1 / float(first_fail[0]) * 1e3:g} ms would give α ≥ {first_fail[0]}/s)"
+            if first_fail
+            else ""
+        )
         + ": then pass `baumgarte_rate` explicitly, or use projection.",
         "",
         "## E/F. Redundant constraints, non-finite values, failed solves",
@@ -775,9 +904,12 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "* A mass matrix that becomes singular during the run: Lagrange (Cholesky of the full M) fails "
         "with a step-limit status whose message names the singular mass matrix; Appell only needs the "
         "reduced inertia and continues.",
-        "* Overflow: " + ("**open** — the solve reports success with T = inf (proposed patch: a "
-                          "`non_finite_output` status)." if R.get("overflow_silent") else
-                          "reported as the failed status `non_finite_output`, not as a success."),
+        "* Overflow: "
+        + (
+            "**open** — the solve reports success with T = inf (proposed patch: a `non_finite_output` status)."
+            if R.get("overflow_silent")
+            else "reported as the failed status `non_finite_output`, not as a success."
+        ),
         "",
         "## G. float32",
         "",
@@ -800,14 +932,20 @@ def report(args, R, n_periods, n32, t_long, t_stress, t_zero, t_baum, t_fail, t_
         "Appell (rounding only): at float32 tolerances the drift is large, so use Appell (or projection on "
         "short runs, see below).",
         f"* Extreme inertia ratio in float32 (J1/J2 = 1e-6): {R.get('f32_ratio', 'not run')}",
-        (f"* Long horizons in float32: time itself has 24 bits, so at t = {n32:,} s it is resolved to "
-         f"{float(jnp.finfo(jnp.float32).eps) * n32:.0e} s — a phase error of the ratio law that no "
-         "tolerance removes (see the angle and energy errors above). Projection counts its correction as "
-         "error, and the correction caused by the rounded time exceeds the tolerance late in the run"
-         + (", so the solve stops at the step limit instead of returning a degraded answer."
-            if R["f32_long"].get("lagrange + projection", {}).get("ok") is False else ".")
-         + " For long runs in float32, restart the time origin every few periods, or use float64."
-         if R["f32_long"] else "* (float32 long horizon: full run only.)"),
+        (
+            f"* Long horizons in float32: time itself has 24 bits, so at t = {n32:,} s it is resolved to "
+            f"{float(jnp.finfo(jnp.float32).eps) * n32:.0e} s — a phase error of the ratio law that no "
+            "tolerance removes (see the angle and energy errors above). Projection counts its correction as "
+            "error, and the correction caused by the rounded time exceeds the tolerance late in the run"
+            + (
+                ", so the solve stops at the step limit instead of returning a degraded answer."
+                if R["f32_long"].get("lagrange + projection", {}).get("ok") is False
+                else "."
+            )
+            + " For long runs in float32, restart the time origin every few periods, or use float64."
+            if R["f32_long"]
+            else "* (float32 long horizon: full run only.)"
+        ),
         "* float32 is good for: batched parameter sweeps, design maps, and the early iterations of a fit, "
         "where a relative accuracy of 1e-5 … 1e-4 is enough. Use float64 for identification against "
         "measured data, gradients of long solves, long horizons, and any comparison with a closed form "

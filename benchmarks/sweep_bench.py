@@ -103,8 +103,13 @@ def bench_batches(sizes, loop_n, repeats, with_vmap=True):
         sweep(case, ps)
         compile_s = time.perf_counter() - t
         t_sweep, c_sweep = best_of(lambda: sweep(case, ps), repeats if B <= 1000 else 2)
-        row = {"batch": B, "sweep_s": t_sweep, "sweep_per_traj_ms": 1e3 * t_sweep / B,
-               "sweep_cpu_per_traj_ms": 1e3 * c_sweep / B, "sweep_first_call_s": compile_s}
+        row = {
+            "batch": B,
+            "sweep_s": t_sweep,
+            "sweep_per_traj_ms": 1e3 * t_sweep / B,
+            "sweep_cpu_per_traj_ms": 1e3 * c_sweep / B,
+            "sweep_first_call_s": compile_s,
+        }
         if with_vmap and B <= 1000:
             vm = jax.jit(jax.vmap(case))
             jax.block_until_ready(vm(ps))
@@ -112,10 +117,13 @@ def bench_batches(sizes, loop_n, repeats, with_vmap=True):
             row["vmap_per_traj_ms"] = 1e3 * t_vm / B
             row["vmap_cpu_per_traj_ms"] = 1e3 * c_vm / B
         rows.append(row)
-        print(f"  batch {B:>6}: sweep {row['sweep_per_traj_ms']:.4f} ms/trajectory "
-              f"(CPU {row['sweep_cpu_per_traj_ms']:.4f})"
-              + (f", one jit(vmap) call {row['vmap_per_traj_ms']:.4f}" if "vmap_per_traj_ms" in row else "")
-              + f"  (first call {compile_s:.1f} s)", flush=True)
+        print(
+            f"  batch {B:>6}: sweep {row['sweep_per_traj_ms']:.4f} ms/trajectory "
+            f"(CPU {row['sweep_cpu_per_traj_ms']:.4f})"
+            + (f", one jit(vmap) call {row['vmap_per_traj_ms']:.4f}" if "vmap_per_traj_ms" in row else "")
+            + f"  (first call {compile_s:.1f} s)",
+            flush=True,
+        )
 
     single = jax.jit(case)
     J2, amp = draw(loop_n)
@@ -127,8 +135,11 @@ def bench_batches(sizes, loop_n, repeats, with_vmap=True):
             jax.block_until_ready(single(p))
 
     t_loop, c_loop = best_of(loop, repeats)
-    print(f"  Python loop of single jitted solves: {1e3 * t_loop / loop_n:.4f} ms/trajectory "
-          f"(CPU {1e3 * c_loop / loop_n:.4f})", flush=True)
+    print(
+        f"  Python loop of single jitted solves: {1e3 * t_loop / loop_n:.4f} ms/trajectory "
+        f"(CPU {1e3 * c_loop / loop_n:.4f})",
+        flush=True,
+    )
     return rows, {"n": loop_n, "per_traj_ms": 1e3 * t_loop / loop_n, "cpu_per_traj_ms": 1e3 * c_loop / loop_n}, single
 
 
@@ -162,8 +173,9 @@ def bench_scipy(n, repeats, single):
     def run(rtol):
         res = []
         for i in range(n):
-            s = solve_ivp(rhs, (0.0, T_END), [0.0, 0.0, W0], method="DOP853", rtol=rtol, atol=rtol * 1e-2,
-                          args=(J2[i], amp[i]))
+            s = solve_ivp(
+                rhs, (0.0, T_END), [0.0, 0.0, W0], method="DOP853", rtol=rtol, atol=rtol * 1e-2, args=(J2[i], amp[i])
+            )
             w = s.y[2, -1]
             U = 1.0 + amp[i] * np.sin(np.pi * T_END)
             res.append([s.y[0, -1], s.y[1, -1], w, U * w])
@@ -178,10 +190,19 @@ def bench_scipy(n, repeats, single):
     if chosen is None:
         chosen = (1e-12, err)
     t, c = best_of(lambda: run(chosen[0]), repeats)
-    print(f"  SciPy DOP853 at rtol={chosen[0]:g} (error {chosen[1]:.1e} ≤ jaxnh's {err_jax:.1e}): "
-          f"{1e3 * t / n:.4f} ms/trajectory (CPU {1e3 * c / n:.4f})", flush=True)
-    return {"n": n, "rtol": chosen[0], "error": chosen[1], "jaxnh_error": err_jax, "per_traj_ms": 1e3 * t / n,
-            "cpu_per_traj_ms": 1e3 * c / n}
+    print(
+        f"  SciPy DOP853 at rtol={chosen[0]:g} (error {chosen[1]:.1e} ≤ jaxnh's {err_jax:.1e}): "
+        f"{1e3 * t / n:.4f} ms/trajectory (CPU {1e3 * c / n:.4f})",
+        flush=True,
+    )
+    return {
+        "n": n,
+        "rtol": chosen[0],
+        "error": chosen[1],
+        "jaxnh_error": err_jax,
+        "per_traj_ms": 1e3 * t / n,
+        "cpu_per_traj_ms": 1e3 * c / n,
+    }
 
 
 # --- 4: devices -------------------------------------------------------------------------
@@ -208,23 +229,35 @@ def scaling_worker(B, chunk, repeats):
         wall, r1 = time.perf_counter() - t, resource.getrusage(resource.RUSAGE_SELF)
         runs.append((wall, r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime))
     wall, cpu = min(runs)
-    print(json.dumps({"devices": jax.device_count(), "batch": B, "chunk": chunk, "s": wall, "cpu_s": cpu,
-                      "first_call_s": first}))
+    print(
+        json.dumps(
+            {"devices": jax.device_count(), "batch": B, "chunk": chunk, "s": wall, "cpu_s": cpu, "first_call_s": first}
+        )
+    )
 
 
 def bench_devices(B, chunk, repeats):
     rows = []
     for d in (1, 2):
         env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={d}", JAX_PLATFORMS="cpu")
-        cmd = [sys.executable, str(pathlib.Path(__file__).resolve()), "--scaling-worker", str(B), str(chunk),
-               str(repeats)]
+        cmd = [
+            sys.executable,
+            str(pathlib.Path(__file__).resolve()),
+            "--scaling-worker",
+            str(B),
+            str(chunk),
+            str(repeats),
+        ]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1200)
         if proc.returncode != 0:
             raise RuntimeError(proc.stderr[-2000:])
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         rows.append(row)
-        print(f"  {d} device(s): {B} cases in {row['s']:.3f} s ({1e3 * row['s'] / B:.4f} ms/trajectory), "
-              f"process CPU time {row['cpu_s']:.3f} s", flush=True)
+        print(
+            f"  {d} device(s): {B} cases in {row['s']:.3f} s ({1e3 * row['s'] / B:.4f} ms/trajectory), "
+            f"process CPU time {row['cpu_s']:.3f} s",
+            flush=True,
+        )
     return rows
 
 
@@ -270,11 +303,21 @@ def bench_gradient(repeats):
     t_f = best_of(lambda: jax.block_until_ready(fwd(probe)), repeats * 5)[1]
     t_g = best_of(lambda: jax.block_until_ready(grad(probe)), repeats * 5)[1]
     steps = int(O.run(probe).stats["num_steps"])
-    print(f"  design objective (CPU time): forward {1e3 * t_f:.3f} ms, "
-          f"value and gradient (8 coefficients) {1e3 * t_g:.3f} ms "
-          f"= {t_g / t_f:.1f}× ({steps} solver steps; compile {c_f:.1f} s and {c_g:.1f} s)", flush=True)
-    return {"forward_ms": 1e3 * t_f, "value_and_grad_ms": 1e3 * t_g, "ratio": t_g / t_f, "n_params": int(probe.size),
-            "solver_steps": steps, "compile_forward_s": c_f, "compile_grad_s": c_g}
+    print(
+        f"  design objective (CPU time): forward {1e3 * t_f:.3f} ms, "
+        f"value and gradient (8 coefficients) {1e3 * t_g:.3f} ms "
+        f"= {t_g / t_f:.1f}× ({steps} solver steps; compile {c_f:.1f} s and {c_g:.1f} s)",
+        flush=True,
+    )
+    return {
+        "forward_ms": 1e3 * t_f,
+        "value_and_grad_ms": 1e3 * t_g,
+        "ratio": t_g / t_f,
+        "n_params": int(probe.size),
+        "solver_steps": steps,
+        "compile_forward_s": c_f,
+        "compile_grad_s": c_g,
+    }
 
 
 # --- report ------------------------------------------------------------------------------
@@ -287,53 +330,73 @@ def write_report(res, out: pathlib.Path):
     L = []
     L.append("# Sweep and design-gradient benchmark")
     L.append("")
-    L.append(f"Written by `python benchmarks/sweep_bench.py{' --quick' if res['quick'] else ''}` on "
-             f"{res['machine']} ({res['cpu_count']} CPUs, load average {res['load_before']} before the run), "
-             f"jax {res['jax']}, diffrax {res['diffrax']}, {res['date']}. Variator, 5 s, rtol = 1e-8, atol = 1e-10, "
-             "Tsit5, Appell form. Times: best of several runs after compilation, as wall-clock time and as "
-             "the process's CPU time; the machine is shared with other jobs, so wall times (and the device "
-             "scaling) are noisy and the CPU times are the steadier measure of cost.")
+    L.append(
+        f"Written by `python benchmarks/sweep_bench.py{' --quick' if res['quick'] else ''}` on "
+        f"{res['machine']} ({res['cpu_count']} CPUs, load average {res['load_before']} before the run), "
+        f"jax {res['jax']}, diffrax {res['diffrax']}, {res['date']}. Variator, 5 s, rtol = 1e-8, atol = 1e-10, "
+        "Tsit5, Appell form. Times: best of several runs after compilation, as wall-clock time and as "
+        "the process's CPU time; the machine is shared with other jobs, so wall times (and the device "
+        "scaling) are noisy and the CPU times are the steadier measure of cost."
+    )
     L.append("")
     L.append("## Time per trajectory against batch size")
     L.append("")
-    L.append("| batch | `nh.sweep` wall (ms/trajectory) | `nh.sweep` CPU (ms/trajectory) "
-             "| one `jit(vmap)` call, wall / CPU (ms/trajectory) | first sweep call incl. compile (s) |")
+    L.append(
+        "| batch | `nh.sweep` wall (ms/trajectory) | `nh.sweep` CPU (ms/trajectory) "
+        "| one `jit(vmap)` call, wall / CPU (ms/trajectory) | first sweep call incl. compile (s) |"
+    )
     L.append("|---:|---:|---:|---:|---:|")
     for r in res["batches"]:
         vm = f"{r['vmap_per_traj_ms']:.4f} / {r['vmap_cpu_per_traj_ms']:.4f}" if "vmap_per_traj_ms" in r else "—"
-        L.append(f"| {r['batch']} | {r['sweep_per_traj_ms']:.4f} | {r['sweep_cpu_per_traj_ms']:.4f} | {vm} | "
-                 f"{r['sweep_first_call_s']:.1f} |")
+        L.append(
+            f"| {r['batch']} | {r['sweep_per_traj_ms']:.4f} | {r['sweep_cpu_per_traj_ms']:.4f} | {vm} | "
+            f"{r['sweep_first_call_s']:.1f} |"
+        )
     lp, sp = res["loop"], res["scipy"]
     big = res["batches"][-1]
     L.append("")
-    L.append(f"| same cases, one at a time | wall (ms/trajectory) | CPU (ms/trajectory) | sweep at batch "
-             f"{big['batch']} is cheaper by (CPU) |")
+    L.append(
+        f"| same cases, one at a time | wall (ms/trajectory) | CPU (ms/trajectory) | sweep at batch "
+        f"{big['batch']} is cheaper by (CPU) |"
+    )
     L.append("|---|---:|---:|---:|")
-    L.append(f"| Python loop of single jitted `simulate` calls ({lp['n']} cases) | {lp['per_traj_ms']:.4f} | "
-             f"{lp['cpu_per_traj_ms']:.4f} | {lp['cpu_per_traj_ms'] / big['sweep_cpu_per_traj_ms']:.1f}× |")
-    L.append(f"| SciPy `solve_ivp` DOP853, NumPy right-hand side, rtol = {sp['rtol']:g} ({sp['n']} cases) | "
-             f"{sp['per_traj_ms']:.4f} | {sp['cpu_per_traj_ms']:.4f} | "
-             f"{sp['cpu_per_traj_ms'] / big['sweep_cpu_per_traj_ms']:.1f}× |")
+    L.append(
+        f"| Python loop of single jitted `simulate` calls ({lp['n']} cases) | {lp['per_traj_ms']:.4f} | "
+        f"{lp['cpu_per_traj_ms']:.4f} | {lp['cpu_per_traj_ms'] / big['sweep_cpu_per_traj_ms']:.1f}× |"
+    )
+    L.append(
+        f"| SciPy `solve_ivp` DOP853, NumPy right-hand side, rtol = {sp['rtol']:g} ({sp['n']} cases) | "
+        f"{sp['per_traj_ms']:.4f} | {sp['cpu_per_traj_ms']:.4f} | "
+        f"{sp['cpu_per_traj_ms'] / big['sweep_cpu_per_traj_ms']:.1f}× |"
+    )
     L.append("")
-    L.append(f"Matched accuracy: max relative error of φ, φ' at 5 s against the closed form, jaxnh "
-             f"{sp['jaxnh_error']:.1e}, SciPy {sp['error']:.1e} (the loosest SciPy rtol in 1e-6 … 1e-12 that is "
-             "no less accurate).")
+    L.append(
+        f"Matched accuracy: max relative error of φ, φ' at 5 s against the closed form, jaxnh "
+        f"{sp['jaxnh_error']:.1e}, SciPy {sp['error']:.1e} (the loosest SciPy rtol in 1e-6 … 1e-12 that is "
+        "no less accurate)."
+    )
     L.append("")
     L.append("## Devices")
     L.append("")
-    L.append("| devices | batch | chunk | wall time (s) | ms/trajectory | speed-up | process CPU time (s) "
-             "| cores used (CPU/wall) |")
+    L.append(
+        "| devices | batch | chunk | wall time (s) | ms/trajectory | speed-up | process CPU time (s) "
+        "| cores used (CPU/wall) |"
+    )
     L.append("|---:|---:|---:|---:|---:|---:|---:|---:|")
     t1 = res["devices"][0]["s"]
     for r in res["devices"]:
-        L.append(f"| {r['devices']} | {r['batch']} | {r['chunk']} | {r['s']:.3f} | {1e3 * r['s'] / r['batch']:.4f} | "
-                 f"{t1 / r['s']:.2f}× | {r['cpu_s']:.3f} | {r['cpu_s'] / r['s']:.2f} |")
+        L.append(
+            f"| {r['devices']} | {r['batch']} | {r['chunk']} | {r['s']:.3f} | {1e3 * r['s'] / r['batch']:.4f} | "
+            f"{t1 / r['s']:.2f}× | {r['cpu_s']:.3f} | {r['cpu_s'] / r['s']:.2f} |"
+        )
     L.append("")
-    L.append("Two host-platform CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=2`) on a "
-             f"{res['cpu_count']}-CPU machine: the ceiling is 2× only when both cores are free; the last column "
-             "shows how many cores the process actually got (below 1 means other work held the CPUs). "
-             "Total CPU time also falls with 2 devices when each device's half-chunk waits for fewer "
-             "stragglers.")
+    L.append(
+        "Two host-platform CPU devices (`XLA_FLAGS=--xla_force_host_platform_device_count=2`) on a "
+        f"{res['cpu_count']}-CPU machine: the ceiling is 2× only when both cores are free; the last column "
+        "shows how many cores the process actually got (below 1 means other work held the CPUs). "
+        "Total CPU time also falls with 2 devices when each device's half-chunk waits for fewer "
+        "stragglers."
+    )
     if res.get("chunks"):
         L.append("")
         L.append("## Chunk size")
@@ -343,17 +406,21 @@ def write_report(res, out: pathlib.Path):
         for r in res["chunks"]:
             L.append(f"| {r['chunk']} | {r['batch']} | {r['per_traj_ms']:.4f} | {r['cpu_per_traj_ms']:.4f} |")
         L.append("")
-        L.append("A vmapped adaptive solve steps its whole chunk until the slowest member finishes: small chunks "
-                 "pay per-call overhead, large ones wait for stragglers.")
+        L.append(
+            "A vmapped adaptive solve steps its whole chunk until the slowest member finishes: small chunks "
+            "pay per-call overhead, large ones wait for stragglers."
+        )
     g = res["gradient"]
     L.append("")
     L.append("## Gradient of a design objective")
     L.append("")
     L.append("| objective | forward, CPU (ms) | value and gradient, CPU (ms) | ratio |")
     L.append("|---|---:|---:|---:|")
-    L.append(f"| optimal-ratio objective, {g['n_params']} coefficients, {g['solver_steps']} solver steps, reverse "
-             f"mode (RecursiveCheckpointAdjoint) | {g['forward_ms']:.3f} | {g['value_and_grad_ms']:.3f} | "
-             f"{g['ratio']:.1f}× |")
+    L.append(
+        f"| optimal-ratio objective, {g['n_params']} coefficients, {g['solver_steps']} solver steps, reverse "
+        f"mode (RecursiveCheckpointAdjoint) | {g['forward_ms']:.3f} | {g['value_and_grad_ms']:.3f} | "
+        f"{g['ratio']:.1f}× |"
+    )
     L.append("")
     L.append(f"Compile: forward {g['compile_forward_s']:.1f} s, gradient {g['compile_grad_s']:.1f} s.")
     L.append("")
@@ -373,13 +440,18 @@ def _plot(res, path):
     ax[0].loglog(B, [r["sweep_cpu_per_traj_ms"] for r in res["batches"]], "o-", label="nh.sweep (chunked, sharded)")
     vb = [r for r in res["batches"] if "vmap_per_traj_ms" in r]
     if vb:
-        ax[0].loglog([r["batch"] for r in vb], [r["vmap_cpu_per_traj_ms"] for r in vb], "s--",
-                     label="one jit(vmap) call")
+        ax[0].loglog(
+            [r["batch"] for r in vb], [r["vmap_cpu_per_traj_ms"] for r in vb], "s--", label="one jit(vmap) call"
+        )
     ax[0].axhline(res["loop"]["cpu_per_traj_ms"], color="C2", ls=":", label="Python loop of single solves")
-    ax[0].axhline(res["scipy"]["cpu_per_traj_ms"], color="C3", ls="-.",
-                  label=f"SciPy DOP853 loop (rtol {res['scipy']['rtol']:g})")
-    ax[0].set(xlabel="batch size", ylabel="CPU ms per trajectory",
-              title=f"variator, 5 s, error ≤ {res['scipy']['jaxnh_error']:.0e}")
+    ax[0].axhline(
+        res["scipy"]["cpu_per_traj_ms"], color="C3", ls="-.", label=f"SciPy DOP853 loop (rtol {res['scipy']['rtol']:g})"
+    )
+    ax[0].set(
+        xlabel="batch size",
+        ylabel="CPU ms per trajectory",
+        title=f"variator, 5 s, error ≤ {res['scipy']['jaxnh_error']:.0e}",
+    )
     ax[0].legend(fontsize=8)
     d = res["devices"]
     ax[1].bar([str(r["devices"]) for r in d], [1e3 * r["s"] / r["batch"] for r in d], color=["C0", "C1"])
@@ -406,8 +478,12 @@ def main(argv=None):
     import jaxnh  # noqa: F401  (64-bit mode)
 
     res = {
-        "quick": quick, "jax": jax.__version__, "diffrax": diffrax.__version__, "machine": platform.machine(),
-        "cpu_count": os.cpu_count(), "load_before": round(os.getloadavg()[0], 2),
+        "quick": quick,
+        "jax": jax.__version__,
+        "diffrax": diffrax.__version__,
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_before": round(os.getloadavg()[0], 2),
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
     sizes = (1, 1000) if quick else (1, 10, 100, 1000, 10000)

@@ -43,14 +43,33 @@ def _batched(kind: str, solver_name: str, ts):
     def one(J1, w0, rtol, atol):
         p = V.VariatorParams(J1, p0.J2, p0.U21, p0.M1, p0.M2)
         if kind == "hand":
-            sol = diffrax.diffeqsolve(diffrax.ODETerm(PB.eq9_jax), solver, ts[0], ts[-1], None,
-                                      (jnp.zeros(2), jnp.stack([w0])), args=p, saveat=diffrax.SaveAt(ts=ts),
-                                      stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-                                      max_steps=100_000, throw=False)
+            sol = diffrax.diffeqsolve(
+                diffrax.ODETerm(PB.eq9_jax),
+                solver,
+                ts[0],
+                ts[-1],
+                None,
+                (jnp.zeros(2), jnp.stack([w0])),
+                args=p,
+                saveat=diffrax.SaveAt(ts=ts),
+                stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+                max_steps=100_000,
+                throw=False,
+            )
             return sol.ys[0], sol.stats["num_steps"]
-        sol = nh.simulate(mech, p, jnp.zeros(2), jnp.stack([w0, w0 * p.U21(0.0)]), ts, form, solver=solver,
-                          max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), throw=False,
-                          stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol))
+        sol = nh.simulate(
+            mech,
+            p,
+            jnp.zeros(2),
+            jnp.stack([w0, w0 * p.U21(0.0)]),
+            ts,
+            form,
+            solver=solver,
+            max_steps=100_000,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+            throw=False,
+            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        )
         return sol.q, sol.stats["num_steps"]
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None)))
@@ -59,8 +78,11 @@ def _batched(kind: str, solver_name: str, ts):
 def run(quick: bool) -> dict:
     ts = jnp.linspace(0.0, 10.0, 101)
     sizes = [1, 1000] if quick else [1, 100, 1000, 10000]
-    contenders = [("appell", "DOP853")] if quick else [("appell", "DOP853"), ("appell", "Tsit5"), ("appell", "Tsit5u"),
-                                                       ("hand", "DOP853")]
+    contenders = (
+        [("appell", "DOP853")]
+        if quick
+        else [("appell", "DOP853"), ("appell", "Tsit5"), ("appell", "Tsit5u"), ("hand", "DOP853")]
+    )
     R, A = C.f64(RTOL), C.f64(ATOL)
     rows = []
     for kind, sname in contenders:
@@ -77,13 +99,24 @@ def run(quick: bool) -> dict:
             err = float(np.max(np.abs(np.asarray(q[0]) - np.asarray(q_ref))))
             rounds = 3 if n >= 10000 else 5
             t = C.interleave({"batch": lambda: jax.block_until_ready(compiled(J1, w0, R, A))}, rounds=rounds)["batch"]
-            row = dict(kind=kind, solver=sname, batch=n, compile=compile_s, time=C.median(t["cpu"]),
-                       time_wall=C.median(t["wall"]), per_trajectory=C.median(t["cpu"]) / n,
-                       per_trajectory_wall=C.median(t["wall"]) / n, max_steps_in_batch=int(np.max(steps)),
-                       mean_steps=float(np.mean(steps)), error_member0=err)
+            row = dict(
+                kind=kind,
+                solver=sname,
+                batch=n,
+                compile=compile_s,
+                time=C.median(t["cpu"]),
+                time_wall=C.median(t["wall"]),
+                per_trajectory=C.median(t["cpu"]) / n,
+                per_trajectory_wall=C.median(t["wall"]) / n,
+                max_steps_in_batch=int(np.max(steps)),
+                mean_steps=float(np.mean(steps)),
+                error_member0=err,
+            )
             rows.append(row)
-            C.log(f"  {kind}/{sname} batch {n:6d}: {row['per_trajectory'] * 1e6:9.1f} us/trajectory cpu "
-                  f"({row['per_trajectory_wall'] * 1e6:9.1f} wall), compile {compile_s['cpu']:.1f} s cpu")
+            C.log(
+                f"  {kind}/{sname} batch {n:6d}: {row['per_trajectory'] * 1e6:9.1f} us/trajectory cpu "
+                f"({row['per_trajectory_wall'] * 1e6:9.1f} wall), compile {compile_s['cpu']:.1f} s cpu"
+            )
     return dict(rows=rows, rtol=RTOL, atol=ATOL, quick=quick)
 
 

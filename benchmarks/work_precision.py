@@ -47,13 +47,26 @@ GENERIC_TOLS = [1e-3, 1e-4, 1e-6, 1e-8, 1e-9, 1e-10, 1e-12]
 
 def _config(quick: bool, problem: str = "variator"):
     if quick:
-        return dict(tols=QUICK_TOLS, solvers=["Tsit5", "DOP853"], methods=("appell",), implicit=False,
-                    scipy=["DOP853"], rounds=5, budget=1.0)
+        return dict(
+            tols=QUICK_TOLS,
+            solvers=["Tsit5", "DOP853"],
+            methods=("appell",),
+            implicit=False,
+            scipy=["DOP853"],
+            rounds=5,
+            budget=1.0,
+        )
     # the generic mechanism costs 10–100× more per solve and 3–8× more to compile: fewer points and rounds
     generic = problem == "generic"
-    return dict(tols=GENERIC_TOLS if generic else FULL_TOLS, solvers=["Tsit5", "Tsit5u", "Dopri5", "Dopri8", "DOP853"],
-                methods=("appell", "lagrange"), implicit=True, scipy=["RK45", "DOP853", "LSODA", "Radau"],
-                rounds=7 if generic else 11, budget=3.0)
+    return dict(
+        tols=GENERIC_TOLS if generic else FULL_TOLS,
+        solvers=["Tsit5", "Tsit5u", "Dopri5", "Dopri8", "DOP853"],
+        methods=("appell", "lagrange"),
+        implicit=True,
+        scipy=["RK45", "DOP853", "LSODA", "Radau"],
+        rounds=7 if generic else 11,
+        budget=3.0,
+    )
 
 
 def _problem(name: str):
@@ -63,10 +76,21 @@ def _problem(name: str):
         f_np, unpack_np = PB.eq9_numpy(v.params)
         y0_np = np.array([0.0, 0.0, float(v.qd0[0])])
         return dict(
-            mech=v.mech, params=v.params, ts=v.ts, q0=v.q0, qd0=v.qd0, independent=(0,),
-            hand_vf=PB.eq9_jax, hand_unpack=PB.eq9_unpack, hand_y0=PB.eq9_state(v),
-            np_f=f_np, np_y0=y0_np, np_unpack=lambda sol: unpack_np(sol.y.T, sol.t),
-            q_ref=np.asarray(v.q_ref), qd_ref=np.asarray(v.qd_ref), reference="closed form (Gauss-Legendre quadrature)",
+            mech=v.mech,
+            params=v.params,
+            ts=v.ts,
+            q0=v.q0,
+            qd0=v.qd0,
+            independent=(0,),
+            hand_vf=PB.eq9_jax,
+            hand_unpack=PB.eq9_unpack,
+            hand_y0=PB.eq9_state(v),
+            np_f=f_np,
+            np_y0=y0_np,
+            np_unpack=lambda sol: unpack_np(sol.y.T, sol.t),
+            q_ref=np.asarray(v.q_ref),
+            qd_ref=np.asarray(v.qd_ref),
+            reference="closed form (Gauss-Legendre quadrature)",
             hand_label="eq. (9) by hand",
         )
     g = PB.generic()
@@ -80,12 +104,23 @@ def _problem(name: str):
     q, qd, _, _ = fn(g.params, y0, C.f64(1e-13), C.f64(1e-15))
     agreement = C.max_error(q, qd, q_ref, qd_ref)
     return dict(
-        mech=g.mech, params=g.params, ts=g.ts, q0=g.q0, qd0=g.qd0, independent=g.independent,
-        hand_vf=PB.generic_rhs_jax, hand_unpack=lambda ys, ts, p: ys, hand_y0=(g.q0, g.qd0),
-        np_f=f_np, np_y0=y0_np, np_unpack=lambda sol: (sol.y.T[:, :s], sol.y.T[:, s:]),
-        q_ref=q_ref, qd_ref=qd_ref, hand_label="Lagrange by hand (dense KKT solve)",
+        mech=g.mech,
+        params=g.params,
+        ts=g.ts,
+        q0=g.q0,
+        qd0=g.qd0,
+        independent=g.independent,
+        hand_vf=PB.generic_rhs_jax,
+        hand_unpack=lambda ys, ts, p: ys,
+        hand_y0=(g.q0, g.qd0),
+        np_f=f_np,
+        np_y0=y0_np,
+        np_unpack=lambda sol: (sol.y.T[:, :s], sol.y.T[:, s:]),
+        q_ref=q_ref,
+        qd_ref=qd_ref,
+        hand_label="Lagrange by hand (dense KKT solve)",
         reference=f"SciPy DOP853 rtol {SCIPY_MIN_RTOL:g}, atol 1e-16 (agrees with jaxnh appell DOP853 "
-                  f"rtol 1e-13 to {agreement:.1e})",
+        f"rtol 1e-13 to {agreement:.1e})",
     )
 
 
@@ -101,25 +136,47 @@ def run(problem: str, quick: bool) -> dict:
         args = (P["params"], y0, C.f64(1e-8), C.f64(1e-10))
         compiled, secs = C.compile_aot(fn, *args)
         compile_s[name] = secs
-        contenders[name] = dict(kind=kind, method=method, solver=solver_name, tols=tols,
-                                call=lambda r, a, R, A, c=compiled, y0=y0: c(P["params"], y0, R, A))
+        contenders[name] = dict(
+            kind=kind,
+            method=method,
+            solver=solver_name,
+            tols=tols,
+            call=lambda r, a, R, A, c=compiled, y0=y0: c(P["params"], y0, R, A),
+        )
         C.log(f"  compiled {name:<28s} {secs['cpu']:6.2f} s cpu, {secs['wall']:6.2f} s wall")
 
     for sname in cfg["solvers"]:
         for method in cfg["methods"]:
-            fn, y0 = C.jaxnh_solver_fn(P["mech"], method, P["q0"], P["qd0"], P["params"], P["ts"], C.SOLVERS[sname](),
-                                       independent=P["independent"] if method == "appell" else None)
+            fn, y0 = C.jaxnh_solver_fn(
+                P["mech"],
+                method,
+                P["q0"],
+                P["qd0"],
+                P["params"],
+                P["ts"],
+                C.SOLVERS[sname](),
+                independent=P["independent"] if method == "appell" else None,
+            )
             add_jax(f"{method}/{sname}", "jaxnh", method, sname, fn, y0, cfg["tols"])
         fn = C.hand_solver_fn(P["hand_vf"], P["hand_unpack"], P["ts"], C.SOLVERS[sname]())
         add_jax(f"hand/{sname}", "hand", "hand", sname, fn, P["hand_y0"], cfg["tols"])
     if cfg["implicit"]:
         for method in ("appell",):
-            fn, y0 = C.jaxnh_solver_fn(P["mech"], method, P["q0"], P["qd0"], P["params"], P["ts"],
-                                       C.SOLVERS["Kvaerno5"](), independent=P["independent"])
+            fn, y0 = C.jaxnh_solver_fn(
+                P["mech"],
+                method,
+                P["q0"],
+                P["qd0"],
+                P["params"],
+                P["ts"],
+                C.SOLVERS["Kvaerno5"](),
+                independent=P["independent"],
+            )
             add_jax(f"{method}/Kvaerno5", "jaxnh", method, "Kvaerno5", fn, y0, IMPLICIT_TOLS)
         fn = C.hand_solver_fn(P["hand_vf"], P["hand_unpack"], P["ts"], C.SOLVERS["Kvaerno5"]())
         add_jax("hand/Kvaerno5", "hand", "hand", "Kvaerno5", fn, P["hand_y0"], IMPLICIT_TOLS)
     for m in cfg["scipy"]:
+
         def call(r, a, R, A, m=m):
             sol = C.scipy_solve(P["np_f"], P["np_y0"], P["ts"], m, max(r, SCIPY_MIN_RTOL), a)
             if not sol.success:
@@ -127,6 +184,7 @@ def run(problem: str, quick: bool) -> dict:
                 return nan, nan, sol.nfev
             q, qd = P["np_unpack"](sol)
             return q, qd, sol.nfev
+
         tols = [t for t in cfg["tols"] if not (m == "Radau" and t < 1e-10) and t >= 1e-13]  # Radau: seconds below
         contenders[f"scipy/{m}"] = dict(kind="scipy", method="numpy", solver=m, tols=tols, call=call)
 
@@ -140,22 +198,50 @@ def run(problem: str, quick: bool) -> dict:
                 continue
             q, qd, steps, *_ = jax.block_until_ready(c["call"](r, a, R, A))  # warm-up, and the error
             meta[name] = (C.max_error(q, qd, P["q_ref"], P["qd_ref"]), int(np.asarray(steps)))
-            calls[name] = (lambda f=c["call"]: jax.block_until_ready(f(r, a, R, A)))
+            calls[name] = lambda f=c["call"]: jax.block_until_ready(f(r, a, R, A))
         heavy = {k for k in calls if k.startswith("scipy/")}
         times = _interleave_heavy(calls, heavy, cfg["rounds"], cfg["budget"])
         for name, tt in times.items():
             c = contenders[name]
             err, steps = meta[name]
             t = C.median(tt["cpu"])
-            points.append(dict(name=name, kind=c["kind"], method=c["method"], solver=c["solver"], rtol=r, atol=a,
-                               error=err, time=t, time_wall=C.median(tt["wall"]), times=tt, steps=steps,
-                               step_cost=t / steps if c["kind"] != "scipy" and steps else None,
-                               compile=compile_s.get(name)))
-        C.log(f"  rtol {r:.0e}: " + "  ".join(f"{n}={C.median(t['cpu']) * 1e3:.2f}ms/{meta[n][0]:.0e}"
-                                              for n, t in times.items() if n.endswith(("DOP853", "Tsit5u"))))
-    return dict(problem=problem, quick=quick, reference=P["reference"], hand_label=P["hand_label"],
-                tols=cfg["tols"], compile=compile_s, points=points, seconds=time.perf_counter() - t_start,
-                n_report=int(P["ts"].shape[0]), horizon=float(P["ts"][-1]))
+            points.append(
+                dict(
+                    name=name,
+                    kind=c["kind"],
+                    method=c["method"],
+                    solver=c["solver"],
+                    rtol=r,
+                    atol=a,
+                    error=err,
+                    time=t,
+                    time_wall=C.median(tt["wall"]),
+                    times=tt,
+                    steps=steps,
+                    step_cost=t / steps if c["kind"] != "scipy" and steps else None,
+                    compile=compile_s.get(name),
+                )
+            )
+        C.log(
+            f"  rtol {r:.0e}: "
+            + "  ".join(
+                f"{n}={C.median(t['cpu']) * 1e3:.2f}ms/{meta[n][0]:.0e}"
+                for n, t in times.items()
+                if n.endswith(("DOP853", "Tsit5u"))
+            )
+        )
+    return dict(
+        problem=problem,
+        quick=quick,
+        reference=P["reference"],
+        hand_label=P["hand_label"],
+        tols=cfg["tols"],
+        compile=compile_s,
+        points=points,
+        seconds=time.perf_counter() - t_start,
+        n_report=int(P["ts"].shape[0]),
+        horizon=float(P["ts"][-1]),
+    )
 
 
 def _interleave_heavy(calls, heavy, rounds, budget):
@@ -177,8 +263,9 @@ def _interleave_heavy(calls, heavy, rounds, budget):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--problem", choices=["variator", "generic", "both"], default="both")
-    ap.add_argument("--quick", action="store_true",
-                    help="variator only, appell and hand in Tsit5 and DOP853, 4 tolerances")
+    ap.add_argument(
+        "--quick", action="store_true", help="variator only, appell and hand in Tsit5 and DOP853, 4 tolerances"
+    )
     a = ap.parse_args(argv)
     probs = ["variator", "generic"] if a.problem == "both" else [a.problem]
     if a.quick and a.problem == "both":

@@ -72,13 +72,17 @@ def main(argv=None):
     print(f"{vf.size} speeds at the benchmark trail in {time.perf_counter() - t0:.2f} s")
     crossings = sign_changes(vf, line)
     pub = (bicycle.PUBLISHED["weave_speed"], bicycle.PUBLISHED["capsize_speed"])
-    print(f"stability boundaries at c = {float(P0['c'])} m: {np.array2string(crossings, precision=5)} m/s "
-          f"(published weave {pub[0]:.5f}, capsize {pub[1]:.5f} m/s)")
+    print(
+        f"stability boundaries at c = {float(P0['c'])} m: {np.array2string(crossings, precision=5)} m/s "
+        f"(published weave {pub[0]:.5f}, capsize {pub[1]:.5f} m/s)"
+    )
     stable = [(c[j], v[grid[:, j] < 0]) for j in range(len(c))]
     widest = max(stable, key=lambda s: np.ptp(s[1]) if s[1].size else -1)
     if widest[1].size:
-        print(f"widest stable speed range on the grid: c = {widest[0]:.3f} m, "
-              f"v ≈ {widest[1].min():.2f} … {widest[1].max():.2f} m/s")
+        print(
+            f"widest stable speed range on the grid: c = {widest[0]:.3f} m, "
+            f"v ≈ {widest[1].min():.2f} … {widest[1].max():.2f} m/s"
+        )
     _plot(out, v, c, grid, crossings)
     return grid, crossings
 
@@ -97,10 +101,18 @@ def _plot(out, v, c, grid, crossings):
     fig.colorbar(m, ax=ax, label="max Re(eigenvalue), 1/s")
     ax.contour(v, c, grid.T, levels=[0.0], colors="k", linewidths=1.5)
     ax.axhline(float(P0["c"]), color="k", ls=":", lw=1)
-    ax.plot(crossings, np.full_like(crossings, float(P0["c"])), "ko", ms=5,
-            label="weave / capsize speeds at the benchmark trail")
-    ax.set(xlabel="forward speed v, m/s", ylabel="trail c, m",
-           title="Whipple bicycle, upright running: stable where max Re < 0 (blue)")
+    ax.plot(
+        crossings,
+        np.full_like(crossings, float(P0["c"])),
+        "ko",
+        ms=5,
+        label="weave / capsize speeds at the benchmark trail",
+    )
+    ax.set(
+        xlabel="forward speed v, m/s",
+        ylabel="trail c, m",
+        title="Whipple bicycle, upright running: stable where max Re < 0 (blue)",
+    )
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
     fig.savefig(out / "bicycle_stability_map.png", dpi=120)

@@ -70,43 +70,72 @@ def main(argv=None):
 
     def law(bound, mean, K=12):
         # start near the record's mean torque with small random harmonics (as `jaxnh design` does)
-        return Bounded(Fourier(float(Bounded.inverse(mean, -bound, bound)), cos=0.3 * rng.standard_normal(K),
-                               sin=0.3 * rng.standard_normal(K), period=float(t[-1] - t[0])), -bound, bound)
+        return Bounded(
+            Fourier(
+                float(Bounded.inverse(mean, -bound, bound)),
+                cos=0.3 * rng.standard_normal(K),
+                sin=0.3 * rng.standard_normal(K),
+                period=float(t[-1] - t[0]),
+            ),
+            -bound,
+            bound,
+        )
 
-    start = V.VariatorParams(params.J1, params.J2, params.U21, law(m1_max, np.mean(params.M1.values)),
-                             law(m2_max, np.mean(params.M2.values)))
+    start = V.VariatorParams(
+        params.J1, params.J2, params.U21, law(m1_max, np.mean(params.M1.values)), law(m2_max, np.mean(params.M2.values))
+    )
     keep = {lab: float(s / v) for lab, s, v in zip(exp.labels[1:P], base.std[1:P], base.values[1:P])}
-    res = optimal_design(exp, start, ("M1", "M2"), "A", of=("J1",),
-                         limits=Limits(multiplier=lam_max, std=keep), starts=args.starts, steps=args.steps,
-                         spread=0.3, progress=True)
+    res = optimal_design(
+        exp,
+        start,
+        ("M1", "M2"),
+        "A",
+        of=("J1",),
+        limits=Limits(multiplier=lam_max, std=keep),
+        starts=args.starts,
+        steps=args.steps,
+        spread=0.3,
+        progress=True,
+    )
     tj = jnp.asarray(t)
     m1 = np.asarray(jax.vmap(res.params.M1)(tj))
     m2 = np.asarray(jax.vmap(res.params.M2)(tj))
     designed = V.VariatorParams(params.J1, params.J2, params.U21, Sampled(t, m1), Sampled(t, m2))
     pred = predict(exp, designed)
-    print(f"\nDesign: feasible {res.feasible}, limits used {res.violations} (≤ 1 holds); "
-          f"max |λ| {float(np.max(pred.max_multiplier)):.4g} N·m (limit {lam_max:.4g})")
+    print(
+        f"\nDesign: feasible {res.feasible}, limits used {res.violations} (≤ 1 holds); "
+        f"max |λ| {float(np.max(pred.max_multiplier)):.4g} N·m (limit {lam_max:.4g})"
+    )
 
     # 3. run the designed experiment (simulated measurement), fit, compare
     mk = _maker()
     truth = mk.truth()
     p_true = V.VariatorParams(truth.J1, truth.J2, truth.U21, Sampled(t, m1), Sampled(t, m2))
     w0 = mk.TRUTH["w0"]
-    sol = nh.simulate(V.mechanism(), p_true, jnp.zeros(2), jnp.array([w0, float(truth.U21(0.0)) * w0]), tj,
-                      rtol=1e-12, atol=1e-12)
+    sol = nh.simulate(
+        V.mechanism(), p_true, jnp.zeros(2), jnp.array([w0, float(truth.U21(0.0)) * w0]), tj, rtol=1e-12, atol=1e-12
+    )
     y = np.asarray(mk.measure(sol.q, jax.random.PRNGKey(args.seed)))
     rec = Record(t, {"phi1": y[:, 0], "phi2": y[:, 1]}, {"M1": m1, "M2": m2}, "designed experiment (simulated)")
     fit = fit_variator(rec)
-    print(f"\nFit of the simulated designed experiment: {fit.iterations} iterations, converged {fit.converged}, "
-          f"ODE rtol {fit.problem.rtol:.2g}")
+    print(
+        f"\nFit of the simulated designed experiment: {fit.iterations} iterations, converged {fit.converged}, "
+        f"ODE rtol {fit.problem.rtol:.2g}"
+    )
     true = np.concatenate([[truth.J1, truth.J2], mk.TRUTH["U21_values"]])
-    print(f"{'parameter':<10}{'true':>9}{'estimate':>12}{'std fitted':>12}{'predicted':>11}{'baseline':>11}"
-          f"{'fit/pred':>9}")
+    print(
+        f"{'parameter':<10}{'true':>9}{'estimate':>12}{'std fitted':>12}{'predicted':>11}{'baseline':>11}"
+        f"{'fit/pred':>9}"
+    )
     for j in range(P):
-        print(f"{exp.labels[j]:<10}{true[j]:>9.5g}{fit.values[j]:>12.7g}{fit.std[j]:>12.3g}{pred.std[j]:>11.3g}"
-              f"{base.std[j]:>11.3g}{fit.std[j] / pred.std[j]:>9.3f}")
-    print(f"\nSE(J1): baseline / designed = {base.std[0] / pred.std[0]:.2f} (predicted), "
-          f"{base.std[0] / fit.std[0]:.2f} (realised in this one fit)")
+        print(
+            f"{exp.labels[j]:<10}{true[j]:>9.5g}{fit.values[j]:>12.7g}{fit.std[j]:>12.3g}{pred.std[j]:>11.3g}"
+            f"{base.std[j]:>11.3g}{fit.std[j] / pred.std[j]:>9.3f}"
+        )
+    print(
+        f"\nSE(J1): baseline / designed = {base.std[0] / pred.std[0]:.2f} (predicted), "
+        f"{base.std[0] / fit.std[0]:.2f} (realised in this one fit)"
+    )
 
 
 if __name__ == "__main__":

@@ -79,20 +79,26 @@ def main(argv=None):
     wall = time.perf_counter() - t0
     grid = {k: np.asarray(v).reshape(J2g.shape) for k, v in res.items()}
     n_ok = int(grid["ok"].sum())
-    print(f"{n_ok}/{J2g.size} solves succeeded in {wall:.1f} s (compile included), "
-          f"{1e3 * wall / J2g.size:.3f} ms per case; steps per case {grid['steps'].min()}–{grid['steps'].max()}")
+    print(
+        f"{n_ok}/{J2g.size} solves succeeded in {wall:.1f} s (compile included), "
+        f"{1e3 * wall / J2g.size:.3f} ms per case; steps per case {grid['steps'].min()}–{grid['steps'].max()}"
+    )
 
     # spot checks against the closed form (eq. 9 integrated by quadrature)
     for i, j in ((0, 0), (args.n // 2, args.n - 1), (args.n - 1, args.n // 3)):
         p = make_params(J2s[i], amps[j])
         _, qd = variator.closed_form(p, TS, w0=W0)
         err = abs(float(qd[-1, 1]) - grid["w2_end"][i, j]) / abs(float(qd[-1, 1]))
-        print(f"  J2 = {J2s[i]:.4f}, a = {amps[j]:.3f}: φ2'(6 s) = {grid['w2_end'][i, j]:.8f} rad/s, "
-              f"relative error vs closed form {err:.1e}")
+        print(
+            f"  J2 = {J2s[i]:.4f}, a = {amps[j]:.3f}: φ2'(6 s) = {grid['w2_end'][i, j]:.8f} rad/s, "
+            f"relative error vs closed form {err:.1e}"
+        )
 
     i, j = np.unravel_index(np.argmax(grid["lam_peak"]), J2g.shape)
-    print(f"largest peak |λ| = {grid['lam_peak'][i, j]:.4f} N·m at J2 = {J2s[i]:.3f} kg·m², a = {amps[j]:.3f}; "
-          f"smallest {grid['lam_peak'].min():.4f} N·m")
+    print(
+        f"largest peak |λ| = {grid['lam_peak'][i, j]:.4f} N·m at J2 = {J2s[i]:.3f} kg·m², a = {amps[j]:.3f}; "
+        f"smallest {grid['lam_peak'].min():.4f} N·m"
+    )
     _plot(out, J2s, amps, grid)
     return grid
 
@@ -116,8 +122,10 @@ def _plot(out, J2s, amps, grid):
         ax.clabel(cs, fontsize=7, fmt="%.2f")
         fig.colorbar(m, ax=ax)
         ax.set(xlabel="amplitude a of U21 = 1 + a sin(πt)", ylabel="J2, kg·m²", title=title)
-    fig.suptitle(f"Variator design map: {grid['ok'].size} cases (J1 = 0.02 kg·m², M1 = 0.3 N·m, "
-                 f"M2 = −0.1 N·m, φ1'(0) = {W0} rad/s, 6 s)")
+    fig.suptitle(
+        f"Variator design map: {grid['ok'].size} cases (J1 = 0.02 kg·m², M1 = 0.3 N·m, "
+        f"M2 = −0.1 N·m, φ1'(0) = {W0} rad/s, 6 s)"
+    )
     fig.tight_layout()
     fig.savefig(out / "design_map.png", dpi=120)
     plt.close(fig)

@@ -28,16 +28,26 @@ from jaxnh.models import knife_edge  # noqa: E402
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "jaxnh_out")
 out.mkdir(parents=True, exist_ok=True)
-p = knife_edge.default_params()                       # m = 1 kg, J = 0.2 kg m², α = 0.3 rad
-omega = 1.2                                           # initial spin, rad/s
+p = knife_edge.default_params()  # m = 1 kg, J = 0.2 kg m², α = 0.3 rad
+omega = 1.2  # initial spin, rad/s
 ts = jnp.linspace(0.0, 15.0, 301)
-sol = nh.simulate(knife_edge.mechanism(), p, jnp.zeros(3), jnp.array([0.0, 0.0, omega]), ts,
-                  method="lagrange", rtol=1e-11, atol=1e-12, record=("multipliers",))
+sol = nh.simulate(
+    knife_edge.mechanism(),
+    p,
+    jnp.zeros(3),
+    jnp.array([0.0, 0.0, omega]),
+    ts,
+    method="lagrange",
+    rtol=1e-11,
+    atol=1e-12,
+    record=("multipliers",),
+)
 q, _ = knife_edge.closed_form(p, ts, omega)
 print(f"lagrange over {float(ts[-1])} s: max error vs closed form {float(np.abs(sol.q - q).max()):.1e}")
-ts_a = jnp.linspace(0.0, 1.2, 25)                     # φ < π/2: the split is regular
-sol_a = nh.simulate(knife_edge.mechanism(), p, jnp.zeros(3), jnp.array([0.0, 0.0, omega]), ts_a,
-                    method="appell", rtol=1e-11, atol=1e-12)
+ts_a = jnp.linspace(0.0, 1.2, 25)  # φ < π/2: the split is regular
+sol_a = nh.simulate(
+    knife_edge.mechanism(), p, jnp.zeros(3), jnp.array([0.0, 0.0, omega]), ts_a, method="appell", rtol=1e-11, atol=1e-12
+)
 q_a, _ = knife_edge.closed_form(p, ts_a, omega)
 print(f"appell over {float(ts_a[-1])} s: max error {float(np.abs(sol_a.q - q_a).max()):.1e}")
 

@@ -26,29 +26,33 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 DATA = os.path.join(HERE, "..", "jaxnh", "data")
 
 TRUTH = {
-    "J1": 0.018,                      # kg·m², shaft 1 with motor rotor
-    "J2": 0.045,                      # kg·m², shaft 2 with load
+    "J1": 0.018,  # kg·m², shaft 1 with motor rotor
+    "J2": 0.045,  # kg·m², shaft 2 with load
     # U21(t): natural cubic spline through these values at these knots (s)
     "U21_knots": [0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
     "U21_values": [0.80, 0.84, 0.98, 1.15, 1.30, 1.38, 1.40],
-    "phi0": [0.0, 0.0],               # rad
-    "w0": 4.0,                        # phi1'(0), rad/s; phi2'(0) = U21(0) * w0
-    "duration": 6.0,                  # s
-    "rate": 250.0,                    # samples per second
+    "phi0": [0.0, 0.0],  # rad
+    "w0": 4.0,  # phi1'(0), rad/s; phi2'(0) = U21(0) * w0
+    "duration": 6.0,  # s
+    "rate": 250.0,  # samples per second
     # M1(t) = 0.15 + 0.08 sin(2π 0.5 t) + 0.04 sin(2π 1.3 t + 0.4)      N·m (motor)
     # M2(t) = −0.06 − 0.03 (1 − cos(2π 0.35 t))                         N·m (load, braking)
-    "counts_per_rev": [8192, 4096],   # encoder 1: 2048 lines ×4, encoder 2: 1024 lines ×4
-    "jitter_std": [3e-4, 6e-4],       # rad, Gaussian noise (electrical, timing) added before quantisation
+    "counts_per_rev": [8192, 4096],  # encoder 1: 2048 lines ×4, encoder 2: 1024 lines ×4
+    "jitter_std": [3e-4, 6e-4],  # rad, Gaussian noise (electrical, timing) added before quantisation
     # the encoders' count grids start at a random fraction of a count from the shaft angle
-    "seed": 1,                        # see jaxnh/data/README.md on the choice
+    "seed": 1,  # see jaxnh/data/README.md on the choice
 }
 
 
 def torques():
     """Motor and load torque laws as profiles (N·m)."""
     ph = 0.4
-    M1 = Fourier(0.15, cos=[0.0] * 12 + [0.04 * np.sin(ph)], sin=[0, 0, 0, 0, 0.08] + [0.0] * 7 + [0.04 * np.cos(ph)],
-                 period=10.0)  # harmonics 5 (0.5 Hz) and 13 (1.3 Hz) of a 10 s period
+    M1 = Fourier(
+        0.15,
+        cos=[0.0] * 12 + [0.04 * np.sin(ph)],
+        sin=[0, 0, 0, 0, 0.08] + [0.0] * 7 + [0.04 * np.cos(ph)],
+        period=10.0,
+    )  # harmonics 5 (0.5 Hz) and 13 (1.3 Hz) of a 10 s period
     M2 = Fourier(-0.09, cos=[0.0] * 6 + [0.03], period=20.0)  # harmonic 7 of 20 s = 0.35 Hz
     return M1, M2
 
@@ -106,18 +110,27 @@ def main():
     m2 = np.asarray(jax.vmap(M2)(jnp.asarray(t)))
     rec = Record(t, {"phi1": y[:, 0], "phi2": y[:, 1]}, {"M1": m1, "M2": m2}, "synthetic")
     os.makedirs(DATA, exist_ok=True)
-    write_csv(rec, os.path.join(DATA, "variator_record.csv"), comments=[
-        "jaxnh embedded variator record (synthetic; made by examples/make_variator_data.py).",
-        "t [s], phi1 phi2 [rad] encoder angles, M1 M2 [N m] commanded motor and load torques.",
-        "True values in variator_truth.json and README.md of this folder.",
-    ])
-    truth_out = dict(TRUTH, noise_std=noise_std().tolist(),
-                     M1="0.15 + 0.08 sin(2 pi 0.5 t) + 0.04 sin(2 pi 1.3 t + 0.4)",
-                     M2="-0.06 - 0.03 (1 - cos(2 pi 0.35 t))")
+    write_csv(
+        rec,
+        os.path.join(DATA, "variator_record.csv"),
+        comments=[
+            "jaxnh embedded variator record (synthetic; made by examples/make_variator_data.py).",
+            "t [s], phi1 phi2 [rad] encoder angles, M1 M2 [N m] commanded motor and load torques.",
+            "True values in variator_truth.json and README.md of this folder.",
+        ],
+    )
+    truth_out = dict(
+        TRUTH,
+        noise_std=noise_std().tolist(),
+        M1="0.15 + 0.08 sin(2 pi 0.5 t) + 0.04 sin(2 pi 1.3 t + 0.4)",
+        M2="-0.06 - 0.03 (1 - cos(2 pi 0.35 t))",
+    )
     with open(os.path.join(DATA, "variator_truth.json"), "w") as f:
         json.dump(truth_out, f, indent=2)
-    print(f"wrote {len(t)} samples over {t[-1]:.1f} s; final angles {q[-1]} rad; "
-          f"speeds phi1' from {TRUTH['w0']} rad/s; reading noise {noise_std()} rad")
+    print(
+        f"wrote {len(t)} samples over {t[-1]:.1f} s; final angles {q[-1]} rad; "
+        f"speeds phi1' from {TRUTH['w0']} rad/s; reading noise {noise_std()} rad"
+    )
 
 
 if __name__ == "__main__":

@@ -57,13 +57,13 @@ from jaxnh.models import variator
 
 
 MECH = variator.mechanism()
-J1, J2 = 0.02, 0.05          # kg·m²
-M1, M2 = 0.3, -0.1           # motor and load torque, N·m
-U_MIN, U_MAX = 0.4, 2.5      # reachable ratios
-T_END = 4.0                  # s
-W_TARGET = 10.0              # rad/s, output shaft speed at T_END
-LAMBDA_MAX = 0.5             # N·m, contact multiplier limit
-N_COEF = 8                   # Chebyshev coefficients of the (inner) ratio law
+J1, J2 = 0.02, 0.05  # kg·m²
+M1, M2 = 0.3, -0.1  # motor and load torque, N·m
+U_MIN, U_MAX = 0.4, 2.5  # reachable ratios
+T_END = 4.0  # s
+W_TARGET = 10.0  # rad/s, output shaft speed at T_END
+LAMBDA_MAX = 0.5  # N·m, contact multiplier limit
+N_COEF = 8  # Chebyshev coefficients of the (inner) ratio law
 TS = jnp.linspace(0.0, T_END, 161)  # report times: the force limit is checked here
 RTOL = 1e-8
 
@@ -81,15 +81,29 @@ def constant_law(U: float, n: int = N_COEF):
 def run(coef, ts=TS, rtol=RTOL):
     """Start-up from rest with the ratio law `coef`; a `Solution` with multipliers."""
     p = variator.VariatorParams(J1=J1, J2=J2, U21=ratio_law(coef), M1=M1, M2=M2)
-    return nh.simulate(MECH, p, jnp.zeros(2), jnp.zeros(2), ts, record=("multipliers",),
-                       rtol=rtol, atol=rtol * 1e-2, max_steps=4096, throw=False)
+    return nh.simulate(
+        MECH,
+        p,
+        jnp.zeros(2),
+        jnp.zeros(2),
+        ts,
+        record=("multipliers",),
+        rtol=rtol,
+        atol=rtol * 1e-2,
+        max_steps=4096,
+        throw=False,
+    )
 
 
 def metrics(coef, ts=TS):
     """Motor energy E (J), final output speed ω2(T) (rad/s), peak |λ| (N·m) on `ts`."""
     sol = run(coef, ts)
-    return {"energy": M1 * sol.q[-1, 0], "w2": sol.qd[-1, 1],
-            "lam_max": jnp.max(jnp.abs(sol.multipliers)), "ok": sol.success}
+    return {
+        "energy": M1 * sol.q[-1, 0],
+        "w2": sol.qd[-1, 1],
+        "lam_max": jnp.max(jnp.abs(sol.multipliers)),
+        "ok": sol.success,
+    }
 
 
 def objective(coef, weight, energy_ref=1.0, rtol=RTOL):
@@ -121,8 +135,10 @@ def design(coef0, energy_ref, steps=300, stages=STAGES, log=print):
         coef, h = optimize(lambda c: objective(c, w, energy_ref), coef, optimizer=opt, steps=steps)
         history.append(h)
         m = {k: float(v) for k, v in jax.jit(metrics)(coef).items()}
-        log(f"  penalty weight {w:.0e}: objective {h.min():.5f}, E = {m['energy']:.4f} J, "
-            f"ω2(T) = {m['w2']:.5f} rad/s, max|λ| = {m['lam_max']:.4f} N·m")
+        log(
+            f"  penalty weight {w:.0e}: objective {h.min():.5f}, E = {m['energy']:.4f} J, "
+            f"ω2(T) = {m['w2']:.5f} rad/s, max|λ| = {m['lam_max']:.4f} N·m"
+        )
     return coef, history
 
 
@@ -137,8 +153,10 @@ def main(argv=None):
     t0 = time.perf_counter()
     U_b, coef_b = baseline()
     mb = {k: float(v) for k, v in jax.jit(metrics)(coef_b).items()}
-    print(f"baseline: constant U21 = {U_b:.6f}: E = {mb['energy']:.4f} J, ω2(T) = {mb['w2']:.6f} rad/s, "
-          f"max|λ| = {mb['lam_max']:.4f} N·m")
+    print(
+        f"baseline: constant U21 = {U_b:.6f}: E = {mb['energy']:.4f} J, ω2(T) = {mb['w2']:.6f} rad/s, "
+        f"max|λ| = {mb['lam_max']:.4f} N·m"
+    )
 
     print(f"optimising {N_COEF} Chebyshev coefficients of the ratio law ...")
     coef, history = design(coef_b, mb["energy"], steps=args.steps)
@@ -149,23 +167,31 @@ def main(argv=None):
     f = lambda c: objective(c, 1e3, mb["energy"])  # noqa: E731
     g = np.asarray(jax.jit(jax.grad(f))(probe))
     g_fd = np.asarray(fd_gradient(f, probe, h=1e-5))
-    print(f"gradient check: max |autodiff − central difference| / max |gradient| = "
-          f"{np.max(np.abs(g - g_fd)) / np.max(np.abs(g)):.1e}")
+    print(
+        f"gradient check: max |autodiff − central difference| / max |gradient| = "
+        f"{np.max(np.abs(g - g_fd)) / np.max(np.abs(g)):.1e}"
+    )
 
-    dense = jnp.linspace(0.0, T_END, 801)   # check the force limit between report times too
+    dense = jnp.linspace(0.0, T_END, 801)  # check the force limit between report times too
     mo = {k: float(v) for k, v in jax.jit(lambda c: metrics(c, dense))(coef).items()}
     sol_o, sol_b = run(coef, dense), run(coef_b, dense)
     gain = 1 - mo["energy"] / mb["energy"]
     for name, sol in (("baseline", sol_b), ("optimum", sol_o)):
         kin = float(0.5 * (J1 * sol.qd[-1, 0] ** 2 + J2 * sol.qd[-1, 1] ** 2))
         load = float(-M2 * sol.q[-1, 1])
-        print(f"  {name:<8}: kinetic energy at T {kin:.4f} J (ω1(T) = {float(sol.qd[-1, 0]):.3f} rad/s) + work "
-              f"against the load {load:.4f} J = {kin + load:.6f} J; motor work M1 φ1(T) = "
-              f"{float(M1 * sol.q[-1, 0]):.6f} J (equal: the constraint does no work)")
-    print(f"optimum:  E = {mo['energy']:.4f} J, ω2(T) = {mo['w2']:.6f} rad/s "
-          f"(miss {abs(mo['w2'] - W_TARGET) / W_TARGET:.1e}), max|λ| = {mo['lam_max']:.4f} N·m on 801 points")
-    print(f"improvement over the constant-ratio baseline: {100 * gain:.1f}% less motor energy "
-          f"({mb['energy']:.4f} J → {mo['energy']:.4f} J)   [{time.perf_counter() - t0:.0f} s]")
+        print(
+            f"  {name:<8}: kinetic energy at T {kin:.4f} J (ω1(T) = {float(sol.qd[-1, 0]):.3f} rad/s) + work "
+            f"against the load {load:.4f} J = {kin + load:.6f} J; motor work M1 φ1(T) = "
+            f"{float(M1 * sol.q[-1, 0]):.6f} J (equal: the constraint does no work)"
+        )
+    print(
+        f"optimum:  E = {mo['energy']:.4f} J, ω2(T) = {mo['w2']:.6f} rad/s "
+        f"(miss {abs(mo['w2'] - W_TARGET) / W_TARGET:.1e}), max|λ| = {mo['lam_max']:.4f} N·m on 801 points"
+    )
+    print(
+        f"improvement over the constant-ratio baseline: {100 * gain:.1f}% less motor energy "
+        f"({mb['energy']:.4f} J → {mo['energy']:.4f} J)   [{time.perf_counter() - t0:.0f} s]"
+    )
 
     _plot(out, dense, sol_b, sol_o, coef_b, coef, history, mb, mo)
     return {"baseline": mb, "optimum": mo, "gain": gain, "U_baseline": U_b}

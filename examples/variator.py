@@ -12,11 +12,11 @@ import jaxnh as nh
 from jaxnh.models import variator
 
 
-mech = variator.mechanism()                 # T, constraint U21(t) phi1' - phi2' = 0, torques
-p = variator.default_params()               # J1, J2 [kg m²], U21(t), M1, M2 [N m]
-ts = jnp.linspace(0.0, 5.0, 51)             # report times, s
-w0 = 2.0                                    # initial phi1', rad/s
-qd0 = jnp.array([w0, p.U21(0.0) * w0])      # phi2' from the constraint
+mech = variator.mechanism()  # T, constraint U21(t) phi1' - phi2' = 0, torques
+p = variator.default_params()  # J1, J2 [kg m²], U21(t), M1, M2 [N m]
+ts = jnp.linspace(0.0, 5.0, 51)  # report times, s
+w0 = 2.0  # initial phi1', rad/s
+qd0 = jnp.array([w0, p.U21(0.0) * w0])  # phi2' from the constraint
 
 q_exact, qd_exact = variator.closed_form(p, ts, w0=w0)
 print(f"closed form   phi1'(5 s) = {float(qd_exact[-1, 0]):.10f} rad/s")

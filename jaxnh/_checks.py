@@ -59,6 +59,7 @@ def initial_checks(form, q, qd, t, params):
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
     if form.m:
+
         def c(v):
             return mech.constraint(q, v, t, params)
 
@@ -81,8 +82,12 @@ def initial_checks(form, q, qd, t, params):
             linear_ok = jnp.all(jnp.abs(second) <= 1e-8 * (jnp.abs(A) @ (jnp.abs(qd) + jnp.abs(e)) + jnp.abs(a) + tiny))
         form_ok, form_status = form.check(q, qd, t, params)
         # the first failure in this order is reported
-        for good, item in ((~velocity_free, STATUS.velocity_free_constraint), (linear_ok, STATUS.constraints_nonlinear),
-                           (form_ok, form_status), (consistent, STATUS.inconsistent_velocities)):
+        for good, item in (
+            (~velocity_free, STATUS.velocity_free_constraint),
+            (linear_ok, STATUS.constraints_nonlinear),
+            (form_ok, form_status),
+            (consistent, STATUS.inconsistent_velocities),
+        ):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
     return ok, status

@@ -199,6 +199,7 @@ class HolonomicMechanism(eqx.Module):
 
         `q̈_D = −G_D⁻¹ (G_I q̈_I + γ)` (g̈ = 0), with `γ = (∂ġ/∂q) q̇ + ∂ġ/∂t`.
         """
+
         def gdot(q_, t_):
             return jax.jvp(lambda x, tt: self._residual(x, tt, params), (q_, t_), (qd, jnp.ones_like(t_)))[1]
 
@@ -242,8 +243,9 @@ class HolonomicMechanism(eqx.Module):
         """Constraint values at a state: `g` (h,), `ġ` (h,) and the nonholonomic `c` (m,)."""
         q = as_float(q)
         t = as_time(t, q)
-        g, gd = jax.jvp(lambda x, t_: self._residual(x, t_, params), (q, t),
-                        (jnp.asarray(qd, q.dtype), jnp.ones_like(t)))
+        g, gd = jax.jvp(
+            lambda x, t_: self._residual(x, t_, params), (q, t), (jnp.asarray(qd, q.dtype), jnp.ones_like(t))
+        )
         c = self.constraints(q, qd, t, params) if self.constraints is not None else jnp.zeros((0,), q.dtype)
         return {"holonomic": g, "holonomic_rate": gd, "nonholonomic": jnp.asarray(c)}
 
@@ -266,9 +268,14 @@ class HolonomicMechanism(eqx.Module):
             return gd if c is None else jnp.concatenate([jnp.asarray(c(q, qd, t, p)), gd])
 
         return Mechanism(
-            self.kinetic, constraints=constraints, forces=self.forces, potential=self.potential,
-            acceleration_energy=self.acceleration_energy, names=self.names,
-            independent=self.independent, nonlinear_constraints=self.nonlinear_constraints,
+            self.kinetic,
+            constraints=constraints,
+            forces=self.forces,
+            potential=self.potential,
+            acceleration_energy=self.acceleration_energy,
+            names=self.names,
+            independent=self.independent,
+            nonlinear_constraints=self.nonlinear_constraints,
         )
 
     def reduced_names(self, s: int) -> Optional[tuple]:
@@ -373,8 +380,15 @@ class HolonomicMechanism(eqx.Module):
         q, qd = _expand(self, sol.q, sol.qd, sol.ts, as_data(params, sol.q))
         names = tuple(self.names) if self.names is not None else tuple(f"q{i}" for i in range(s))
         return type(sol)(
-            ts=sol.ts, q=q, qd=qd, multipliers=sol.multipliers, energy=sol.energy, residual=sol.residual,
-            stats=sol.stats, status=sol.status, names=names,
+            ts=sol.ts,
+            q=q,
+            qd=qd,
+            multipliers=sol.multipliers,
+            energy=sol.energy,
+            residual=sol.residual,
+            stats=sol.stats,
+            status=sol.status,
+            names=names,
         )
 
     def simulate(self, params, q0, qd0, ts, method: str = "appell", **kwargs):
@@ -401,8 +415,9 @@ class HolonomicMechanism(eqx.Module):
         free = self.free(s)
         red_ind = None if ind is None else tuple(free.index(i) for i in ind)
         mech = self.reduced(s)
-        sol = simulate(mech, params, pick(q0, free), pick(qd0, free), ts, method="appell", independent=red_ind,
-                       **kwargs)
+        sol = simulate(
+            mech, params, pick(q0, free), pick(qd0, free), ts, method="appell", independent=red_ind, **kwargs
+        )
         return self.expand(sol, params)
 
 

@@ -50,10 +50,12 @@ __all__ = ["LeanSolution", "Tableau", "TSIT5", "DOP853", "STATUS_MESSAGES", "lea
 STATUS_MESSAGES = {
     0: "success: every report time was reached",
     1: "max_steps reached before the last report time (step attempts, accepted or rejected, hit max_steps)",
-    2: ("step size underflow: the step size became too small to advance t in floating point (after a "
+    2: (
+        "step size underflow: the step size became too small to advance t in floating point (after a "
         "rejection, or for an attempt itself), or non-finite. Almost always a non-finite value (NaN/inf) in the "
         "vector field or the state, which makes every attempt fail; otherwise a singularity or a tolerance below "
-        "rounding."),
+        "rounding."
+    ),
 }
 
 
@@ -157,6 +159,7 @@ class Tableau:
 
 # Tsit5 ---------------------------------------------------------------------------
 
+
 def _t5_error(fs, h):
     return h * _lincomb(_S._T5_E, fs)
 
@@ -174,13 +177,23 @@ def _t5_dense_eval(ks, y0, s):
 
 
 TSIT5 = Tableau(
-    name="tsit5", order=5, error_order=5, c=tuple(_S._T5_C[:6]), a=_S._T5_A, b=_S._T5_B,
-    error=_t5_error, evals_per_step=6, dense_evals=0, dense_prepare=_t5_dense_prepare, dense_eval=_t5_dense_eval,
+    name="tsit5",
+    order=5,
+    error_order=5,
+    c=tuple(_S._T5_C[:6]),
+    a=_S._T5_A,
+    b=_S._T5_B,
+    error=_t5_error,
+    evals_per_step=6,
+    dense_evals=0,
+    dense_prepare=_t5_dense_prepare,
+    dense_eval=_t5_dense_eval,
 )
 """Tsitouras' 5(4) pair (Comput. Math. Appl. 62 (2011) 770), as `jaxnh.solvers.Tsit5`."""
 
 
 # DOP853 --------------------------------------------------------------------------
+
 
 def _dop853_error(fs, h):
     e5 = h * _lincomb(_S._ER, fs)
@@ -209,8 +222,16 @@ def _dop853_dense_eval(r, y0, s):
 
 
 DOP853 = Tableau(
-    name="dop853", order=8, error_order=8, c=tuple(_S._C[:12]), a={i: _S._A[i] for i in range(2, 13)}, b=_S._B,
-    error=_dop853_error, evals_per_step=12, dense_evals=3, dense_prepare=_dop853_dense_prepare,
+    name="dop853",
+    order=8,
+    error_order=8,
+    c=tuple(_S._C[:12]),
+    a={i: _S._A[i] for i in range(2, 13)},
+    b=_S._B,
+    error=_dop853_error,
+    evals_per_step=12,
+    dense_evals=3,
+    dense_prepare=_dop853_dense_prepare,
     dense_eval=_dop853_dense_eval,
 )
 """Dormand–Prince 8(5,3) with Hairer's error estimate and 7th-order dense output (Hairer,
@@ -260,9 +281,27 @@ class _Carry(NamedTuple):
     status: Any
 
 
-def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e-10, max_steps=100_000, dt0=None,
-               norm=None, pre_step=None, post_step=None, report="step", pcoeff=0.0, icoeff=1.0,
-               safety=0.9, factormin=0.2, factormax=10.0) -> LeanSolution:
+def lean_solve(
+    vector_field,
+    y0,
+    args,
+    ts,
+    *,
+    method="tsit5",
+    rtol=1e-8,
+    atol=1e-10,
+    max_steps=100_000,
+    dt0=None,
+    norm=None,
+    pre_step=None,
+    post_step=None,
+    report="step",
+    pcoeff=0.0,
+    icoeff=1.0,
+    safety=0.9,
+    factormin=0.2,
+    factormax=10.0,
+) -> LeanSolution:
     """Integrate dy/dt = vector_field(t, y, args) from ts[0] and report y at the times ts.
 
     Arguments:
@@ -363,8 +402,9 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
         f1 = lax.stop_gradient(vf(t0 + h0, yc + h0 * fc, lax.stop_gradient(args)))
         d2 = norm((f1 - fc) / scale) / h0
         max_d = jnp.maximum(d1, d2)
-        h1 = jnp.where(max_d <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
-                       (0.01 / jnp.where(max_d <= 1e-15, 1, max_d)) ** (1 / q))
+        h1 = jnp.where(
+            max_d <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(max_d <= 1e-15, 1, max_d)) ** (1 / q)
+        )
         dt_init = jnp.minimum(100 * h0, h1).astype(dtype)
         n_evals0 = n_evals0 + 1
     else:
@@ -373,8 +413,19 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
 
     ys = jnp.full((r, n), jnp.nan, dtype).at[0].set(y0)
     zero = jnp.int32(0)
-    carry = _Carry(t=t0, y=y0, f=f0, dt=dt_init, k=jnp.int32(1), ys=ys, inv_prev=jnp.ones((), dtype),
-                   n_steps=zero, n_acc=zero, n_evals=n_evals0, status=zero)
+    carry = _Carry(
+        t=t0,
+        y=y0,
+        f=f0,
+        dt=dt_init,
+        k=jnp.int32(1),
+        ys=ys,
+        inv_prev=jnp.ones((), dtype),
+        n_steps=zero,
+        n_acc=zero,
+        n_evals=n_evals0,
+        status=zero,
+    )
 
     def cond(c):
         return (c.k < r) & (c.status == 0) & (c.n_steps < max_steps)
@@ -451,8 +502,9 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
             def rows():  # the state at the next report times, by the continuous extension
                 coeffs = tab.dense_prepare(vf, t, h, y, y1, fs, args)[0]
                 hh = jnp.where(h == 0, 1, h)
-                return jnp.stack([jnp.where(ts[i] == t1, y1_end, tab.dense_eval(coeffs, y, (ts[i] - t) / hh))
-                                  for i in idx])
+                return jnp.stack(
+                    [jnp.where(ts[i] == t1, y1_end, tab.dense_eval(coeffs, y, (ts[i] - t) / hh)) for i in idx]
+                )
 
             # computed only in steps that hold a report time (for any member of a vmap batch); the
             # rows are written outside the conditional, in place
@@ -468,17 +520,30 @@ def lean_solve(vector_field, y0, args, ts, *, method="tsit5", rtol=1e-8, atol=1e
         # the step cannot advance t: after a rejection the next step would not move t, or this
         # attempt itself did not (t + dt == t without landing on a report time)
         # (or a rejected step onto a report time within ~100 ulp, which would be attempted unchanged)
-        underflow = ((~accept & ((t + dt_next <= t) | ~jnp.isfinite(dt_next) | (t + dt_next > floor(target))))
-                     | ((h <= 0) & ~clipped))
+        underflow = (~accept & ((t + dt_next <= t) | ~jnp.isfinite(dt_next) | (t + dt_next > floor(target)))) | (
+            (h <= 0) & ~clipped
+        )
         status = jnp.where(underflow, 2, 0).astype(jnp.int32)
         return _Carry(
-            t=jnp.where(accept, t1, t), y=jnp.where(accept, y1_end, y), f=jnp.where(accept, f1, f),
-            dt=dt_next, k=k, ys=ys_out, inv_prev=inv_prev, n_steps=n_steps,
-            n_acc=c.n_acc + accept.astype(jnp.int32), n_evals=n_evals, status=status,
+            t=jnp.where(accept, t1, t),
+            y=jnp.where(accept, y1_end, y),
+            f=jnp.where(accept, f1, f),
+            dt=dt_next,
+            k=k,
+            ys=ys_out,
+            inv_prev=inv_prev,
+            n_steps=n_steps,
+            n_acc=c.n_acc + accept.astype(jnp.int32),
+            n_evals=n_evals,
+            status=status,
         )
 
     out = lax.while_loop(cond, body, carry)
     status = jnp.where((out.status == 0) & (out.k < r), 1, out.status).astype(jnp.int32)  # ran out of steps
-    stats = dict(num_steps=out.n_steps, num_accepted_steps=out.n_acc, num_rejected_steps=out.n_steps - out.n_acc,
-                 rhs_evaluations=out.n_evals)
+    stats = dict(
+        num_steps=out.n_steps,
+        num_accepted_steps=out.n_acc,
+        num_rejected_steps=out.n_steps - out.n_acc,
+        rhs_evaluations=out.n_evals,
+    )
     return LeanSolution(ys=out.ys, status=status, stats=stats, t_final=out.t, y_final=out.y)

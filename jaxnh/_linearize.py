@@ -180,8 +180,15 @@ def linearize(
     dnames = tuple("d" + names[i] for i in speeds) if speeds is not None else tuple(f"dv{j}" for j in range(s - m))
     states = tuple(names[i] for i in coordinates) + dnames
     return Linearization(
-        A=A, mass=mass, damping=damping, stiffness=stiffness, rates=rates, state=x0,
-        states=states, coordinates=coordinates, speeds=speeds,
+        A=A,
+        mass=mass,
+        damping=damping,
+        stiffness=stiffness,
+        rates=rates,
+        state=x0,
+        states=states,
+        coordinates=coordinates,
+        speeds=speeds,
     )
 
 

@@ -111,8 +111,11 @@ class Mechanism(eqx.Module):
             parts.append(jnp.asarray(self.constraints(q, qd, t, params)))
         holonomic = self.holonomic
         if holonomic is not None:
-            _, gd = jax.jvp(lambda x, t_: jnp.asarray(holonomic(x, t_, params)), (q, jnp.asarray(t, q.dtype)),
-                            (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)))
+            _, gd = jax.jvp(
+                lambda x, t_: jnp.asarray(holonomic(x, t_, params)),
+                (q, jnp.asarray(t, q.dtype)),
+                (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)),
+            )
             parts.append(gd.astype(jnp.result_type(qd)))
         if not parts:
             return jnp.zeros((0,), jnp.result_type(qd))

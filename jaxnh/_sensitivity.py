@@ -63,8 +63,23 @@ class ForwardSensitivity(eqx.Module):
 
     error_control: bool = eqx.field(static=True, default=True)
 
-    def solve(self, vector_field, solver, maps, y0, args, saveat, controller, *, t0, t1, max_steps, dt0,
-              error_mask=None, integrator=None):
+    def solve(
+        self,
+        vector_field,
+        solver,
+        maps,
+        y0,
+        args,
+        saveat,
+        controller,
+        *,
+        t0,
+        t1,
+        max_steps,
+        dt0,
+        error_mask=None,
+        integrator=None,
+    ):
         """The solve of `vector_field(t, y, args)` from y0 at t0 to t1, saved at `saveat`.
 
         Returns `(ts, ys, result, stats)`, differentiable in `args` and `y0` by
@@ -72,9 +87,22 @@ class ForwardSensitivity(eqx.Module):
         every step; `error_mask` (a static tuple of 0/1, one per leaf of y0)
         excludes bookkeeping components from the error control.
         """
-        return _solve(args, y0, controller, t0, t1, saveat, vector_field=vector_field, solver=solver, maps=maps,
-                      max_steps=max_steps, dt0=dt0, error_mask=error_mask, error_control=self.error_control,
-                      integrator=integrator)
+        return _solve(
+            args,
+            y0,
+            controller,
+            t0,
+            t1,
+            saveat,
+            vector_field=vector_field,
+            solver=solver,
+            maps=maps,
+            max_steps=max_steps,
+            dt0=dt0,
+            error_mask=error_mask,
+            error_control=self.error_control,
+            integrator=integrator,
+        )
 
 
 def _masked_rms(err, mask):
@@ -89,9 +117,24 @@ def _flat_mask(error_mask, y0):
     return jnp.concatenate([jnp.full((x.size,), w, jnp.result_type(x)) for x, w in zip(leaves, weights)])
 
 
-def diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, *, t0, t1, max_steps, dt0,
-                  adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode(), event=None, progress_meter=None,
-                  error_mask=None):
+def diffrax_solve(
+    vector_field,
+    solver,
+    maps,
+    y0,
+    args,
+    saveat,
+    controller,
+    *,
+    t0,
+    t1,
+    max_steps,
+    dt0,
+    adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode(),
+    event=None,
+    progress_meter=None,
+    error_mask=None,
+):
     """One `diffrax.diffeqsolve` of y' = vector_field(t, y, args) with `maps` around every step,
     the `error_mask` applied to a default-norm PID controller, and throw=False."""
     if maps is not None:
@@ -104,8 +147,20 @@ def diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, *, t
     kwargs = {} if progress_meter is None else {"progress_meter": progress_meter}
     with no_host_callbacks():
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field), solver, t0=t0, t1=t1, dt0=dt0, y0=y0, args=args, saveat=saveat,
-            stepsize_controller=controller, max_steps=max_steps, adjoint=adjoint, event=event, throw=False, **kwargs,
+            diffrax.ODETerm(vector_field),
+            solver,
+            t0=t0,
+            t1=t1,
+            dt0=dt0,
+            y0=y0,
+            args=args,
+            saveat=saveat,
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            event=event,
+            throw=False,
+            **kwargs,
         )
 
 
@@ -165,6 +220,7 @@ class LeanIntegrator(eqx.Module):
 
         pre_step = post_step = None
         if maps is not None:
+
             def pre(t, z, a):
                 y, jumped = maps.pre(t, unravel(z), a)
                 return flat(y), jumped
@@ -174,14 +230,27 @@ class LeanIntegrator(eqx.Module):
                 return flat(y1), None if corr is None else flat(corr), reject | fail
 
             pre_step, post_step = pre, post
-        sol = lean_solve(f, z0, args, ts, method=self.method, rtol=controller.rtol, atol=controller.atol,
-                         max_steps=max_steps, dt0=dt0, norm=norm, pre_step=pre_step, post_step=post_step,
-                         report=self.report)
+        sol = lean_solve(
+            f,
+            z0,
+            args,
+            ts,
+            method=self.method,
+            rtol=controller.rtol,
+            atol=controller.atol,
+            max_steps=max_steps,
+            dt0=dt0,
+            norm=norm,
+            pre_step=pre_step,
+            post_step=post_step,
+            report=self.report,
+        )
         # the layout of SaveAt(subs=[SubSaveAt(ts=ts), SubSaveAt(t1=True)])
         zs = [sol.ys, sol.y_final[None]]
         out_ts = [ts, sol.t_final[None].astype(ts.dtype)]
         result = diffrax.RESULTS.where(
-            sol.status == 0, diffrax.RESULTS.successful,
+            sol.status == 0,
+            diffrax.RESULTS.successful,
             diffrax.RESULTS.where(sol.status == 1, diffrax.RESULTS.max_steps_reached, diffrax.RESULTS.dt_min_reached),
         )
         stats = dict(sol.stats)
@@ -193,15 +262,38 @@ def lean_compatible(controller) -> bool:
     """Whether a step-size controller is one the lean loop reproduces (a plain PIDController)."""
     import optimistix as optx
 
-    return bool(isinstance(controller, diffrax.PIDController) and controller.norm is optx.rms_norm
-                and controller.dtmin is None and controller.dtmax is None
-                and controller.pcoeff == 0 and controller.dcoeff == 0
-                and controller.icoeff == 1 and controller.factormin == 0.2 and controller.factormax == 10.0
-                and controller.safety == 0.9 and controller.error_order is None)
+    return bool(
+        isinstance(controller, diffrax.PIDController)
+        and controller.norm is optx.rms_norm
+        and controller.dtmin is None
+        and controller.dtmax is None
+        and controller.pcoeff == 0
+        and controller.dcoeff == 0
+        and controller.icoeff == 1
+        and controller.factormin == 0.2
+        and controller.factormax == 10.0
+        and controller.safety == 0.9
+        and controller.error_order is None
+    )
 
 
-def _plain(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, max_steps, dt0, error_mask,
-           integrator=None, norm=None):
+def _plain(
+    args,
+    y0,
+    controller,
+    t0,
+    t1,
+    saveat,
+    *,
+    vector_field,
+    solver,
+    maps,
+    max_steps,
+    dt0,
+    error_mask,
+    integrator=None,
+    norm=None,
+):
     if integrator is not None:
         if norm is None:
             mask = _flat_mask(error_mask, y0)
@@ -209,25 +301,63 @@ def _plain(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, 
         subs = saveat.subs
         if not (isinstance(subs, list) and len(subs) == 2 and subs[1].t1 and subs[0].ts is not None):
             raise ValueError("the lean loop saves as SaveAt(subs=[SubSaveAt(ts=ts), SubSaveAt(t1=True)]) only")
-        return integrator(vector_field, maps, y0, args, subs[0].ts, controller, max_steps=max_steps, dt0=dt0,
-                          norm=norm)
+        return integrator(vector_field, maps, y0, args, subs[0].ts, controller, max_steps=max_steps, dt0=dt0, norm=norm)
     if norm is not None:
         controller = eqx.tree_at(lambda c: c.norm, controller, norm)
-    sol = diffrax_solve(vector_field, solver, maps, y0, args, saveat, controller, t0=t0, t1=t1,
-                        max_steps=max_steps, dt0=dt0, error_mask=None if norm is not None else error_mask)
+    sol = diffrax_solve(
+        vector_field,
+        solver,
+        maps,
+        y0,
+        args,
+        saveat,
+        controller,
+        t0=t0,
+        t1=t1,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=None if norm is not None else error_mask,
+    )
     return sol.ts, sol.ys, sol.result, sol.stats
 
 
 @eqx.filter_custom_jvp
-def _solve(args, y0, controller, t0, t1, saveat, *, vector_field, solver, maps, max_steps, dt0, error_mask,
-           error_control, integrator):
-    return _plain(args, y0, controller, t0, t1, saveat, vector_field=vector_field, solver=solver, maps=maps,
-                  max_steps=max_steps, dt0=dt0, error_mask=error_mask, integrator=integrator)
+def _solve(
+    args,
+    y0,
+    controller,
+    t0,
+    t1,
+    saveat,
+    *,
+    vector_field,
+    solver,
+    maps,
+    max_steps,
+    dt0,
+    error_mask,
+    error_control,
+    integrator,
+):
+    return _plain(
+        args,
+        y0,
+        controller,
+        t0,
+        t1,
+        saveat,
+        vector_field=vector_field,
+        solver=solver,
+        maps=maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=error_mask,
+        integrator=integrator,
+    )
 
 
 @_solve.def_jvp
-def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0, error_mask, error_control,
-               integrator):
+def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0, error_mask, error_control, integrator):
     args, y0, controller, t0, t1, saveat = primals
     t_args, t_y0, *t_rest = tangents
     if any(x is not None for x in jtu.tree_leaves(t_rest)):
@@ -246,8 +376,15 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
     sizes_p = [x.size for x in p_leaves]
     sizes_y = [x.size if on else 0 for x, on in zip(y_leaves, y_on)]
     P = sum(sizes_p) + sum(sizes_y)
-    kw = dict(vector_field=vector_field, solver=solver, maps=maps, max_steps=max_steps, dt0=dt0, error_mask=error_mask,
-              integrator=integrator)
+    kw = dict(
+        vector_field=vector_field,
+        solver=solver,
+        maps=maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=error_mask,
+        integrator=integrator,
+    )
     if P == 0:
         out = _plain(args, y0, controller, t0, t1, saveat, **kw)
         return out, jtu.tree_map(lambda _: None, out)
@@ -260,12 +397,12 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
     for x, n in zip(y_leaves, sizes_y):
         block = jnp.zeros((P, x.size), x.dtype)
         if n:
-            block = eye[:, offset:offset + n].astype(x.dtype)
+            block = eye[:, offset : offset + n].astype(x.dtype)
             offset += n
         S0.append(block.reshape((P,) + x.shape))
     E = []
     for x, n in zip(p_leaves, sizes_p):
-        E.append(eye[:, offset:offset + n].astype(x.dtype).reshape((P,) + x.shape))
+        E.append(eye[:, offset : offset + n].astype(x.dtype).reshape((P,) + x.shape))
         offset += n
     S0 = jtu.tree_unflatten(y_def, S0)
     E = jtu.tree_unflatten(p_def, E)
@@ -291,9 +428,22 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
         return jnp.maximum(ey, _masked_rms(e[ny:], mask_S))
 
     z_maps = None if maps is None else SensitivityMaps(maps, unravel, p_rest)
-    ts, zs, result, stats = _plain((p_diff, E), z0, controller, t0, t1, saveat, vector_field=augmented,
-                                   solver=solver, maps=z_maps, max_steps=max_steps, dt0=dt0, error_mask=None,
-                                   integrator=integrator, norm=norm)
+    ts, zs, result, stats = _plain(
+        (p_diff, E),
+        z0,
+        controller,
+        t0,
+        t1,
+        saveat,
+        vector_field=augmented,
+        solver=solver,
+        maps=z_maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=None,
+        integrator=integrator,
+        norm=norm,
+    )
     if isinstance(zs, list):  # several SubSaveAts
         ys, Ss = zip(*[jax.vmap(unravel)(z) for z in zs])
         ys, Ss = list(ys), list(Ss)

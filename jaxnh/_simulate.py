@@ -31,8 +31,17 @@ from .solvers import Tsit5
 
 
 __all__ = [
-    "Solution", "simulate", "RECORDABLE", "STABILIZATIONS", "STATUS", "default_solver", "DOP853_BELOW_RTOL",
-    "DOPRI8_BELOW_RTOL_LOOPED", "UNROLL_MAX_OPERATIONS", "vector_field_operations", "field",
+    "Solution",
+    "simulate",
+    "RECORDABLE",
+    "STABILIZATIONS",
+    "STATUS",
+    "default_solver",
+    "DOP853_BELOW_RTOL",
+    "DOPRI8_BELOW_RTOL_LOOPED",
+    "UNROLL_MAX_OPERATIONS",
+    "vector_field_operations",
+    "field",
 ]
 
 RECORDABLE = ("multipliers", "energy", "residual")
@@ -98,7 +107,7 @@ def _count_operations(jaxpr) -> int:
     for eqn in jaxpr.eqns:
         n += 1
         for v in eqn.params.values():
-            for sub in (v if isinstance(v, (tuple, list)) else (v,)):
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
                 inner = getattr(sub, "jaxpr", sub)
                 if hasattr(inner, "eqns"):
                     n += _count_operations(inner)
@@ -298,8 +307,22 @@ def simulate(
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     traced = is_traced(params, q0, qd0, ts, form)
     sol = _run(
-        mech, form, params, q0, qd0, ts, solver, stepsize_controller, saveat, event, progress_meter, adjoint,
-        dt0, record=record, max_steps=int(max_steps), rtol=_rtol_class(float(rtol)),
+        mech,
+        form,
+        params,
+        q0,
+        qd0,
+        ts,
+        solver,
+        stepsize_controller,
+        saveat,
+        event,
+        progress_meter,
+        adjoint,
+        dt0,
+        record=record,
+        max_steps=int(max_steps),
+        rtol=_rtol_class(float(rtol)),
         graph_throw=bool(throw and traced),
     )
     if throw and not traced and np.ndim(sol.status._value) == 0 and int(np.asarray(sol.status._value)) != 0:
@@ -411,8 +434,26 @@ class _UserEvent(eqx.Module):
 
 
 @eqx.filter_jit
-def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, progress_meter, adjoint, dt0, *,
-         record, max_steps, rtol, graph_throw):
+def _run(
+    mech,
+    form,
+    params,
+    q0,
+    qd0,
+    ts,
+    solver,
+    controller,
+    saveat,
+    event,
+    progress_meter,
+    adjoint,
+    dt0,
+    *,
+    record,
+    max_steps,
+    rtol,
+    graph_throw,
+):
     """The compiled part of `simulate`."""
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
@@ -440,9 +481,16 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
     if solver is None:
         operations = vector_field_operations(form, t0, y0, params)
         solver = default_solver(rtol, operations, form.name)
-        lean = (LEAN and y0_dtype(y0) == jnp.float64 and saveat is None and event is None and progress_meter is None
-                and operations <= UNROLL_MAX_OPERATIONS and lean_compatible(controller)
-                and isinstance(choose_adjoint(adjoint, params, q0, qd0), ForwardSensitivity))
+        lean = (
+            LEAN
+            and y0_dtype(y0) == jnp.float64
+            and saveat is None
+            and event is None
+            and progress_meter is None
+            and operations <= UNROLL_MAX_OPERATIONS
+            and lean_compatible(controller)
+            and isinstance(choose_adjoint(adjoint, params, q0, qd0), ForwardSensitivity)
+        )
         if lean:  # the lean loop: same tableaus, none of diffeqsolve's machinery
             integrator = LeanIntegrator("dop853" if rtol < DOP853_BELOW_RTOL else "tsit5")
     diagnose = saveat is None  # with the default saving, keep the last state reached for a failure's diagnosis
@@ -450,8 +498,11 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=tsr), diffrax.SubSaveAt(t1=True)])
     dense = bool(saveat.dense)
     if event is not None:
-        event = diffrax.Event(jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
-                              root_finder=event.root_finder, direction=event.direction)
+        event = diffrax.Event(
+            jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
+            root_finder=event.root_finder,
+            direction=event.direction,
+        )
     adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
     args = (form, params, ok)
     maps = form.step_maps()
@@ -463,11 +514,23 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
                 "adjoint=ForwardSensitivity() supports saving at report times only; dense output, events and "
                 "progress meters need a diffrax adjoint, e.g. diffrax.RecursiveCheckpointAdjoint()"
             )
-        out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller,
-                                                  integrator=integrator, **kw)
+        out_ts, ys, result, stats = adjoint.solve(
+            field, solver, maps, y0, args, saveat, controller, integrator=integrator, **kw
+        )
     else:
-        sol = diffrax_solve(field, solver, maps, y0, args, saveat, controller, adjoint=adjoint, event=event,
-                            progress_meter=progress_meter, **kw)
+        sol = diffrax_solve(
+            field,
+            solver,
+            maps,
+            y0,
+            args,
+            saveat,
+            controller,
+            adjoint=adjoint,
+            event=event,
+            progress_meter=progress_meter,
+            **kw,
+        )
         out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
         event_mask, interpolation = sol.event_mask, sol.interpolation
     if out_ts is None or ys is None:
@@ -523,8 +586,15 @@ def _run(mech, form, params, q0, qd0, ts, solver, controller, saveat, event, pro
         q, qd = raise_in_graph(q, status), raise_in_graph(qd, status)
         out = {k: raise_in_graph(v, status) for k, v in out.items()}
     return Solution(
-        ts=out_ts, q=q, qd=qd, multipliers=out.get("multipliers"), energy=out.get("energy"),
-        residual=out.get("residual"), stats=stats, status=status, names=mech.coordinate_names(s),
+        ts=out_ts,
+        q=q,
+        qd=qd,
+        multipliers=out.get("multipliers"),
+        energy=out.get("energy"),
+        residual=out.get("residual"),
+        stats=stats,
+        status=status,
+        names=mech.coordinate_names(s),
         dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )
@@ -547,7 +617,8 @@ def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
     tsub = ts[idx]
     ok = jnp.isfinite(tsub)
     rho = jax.vmap(lambda y, t: spectral_radius(form, y, t, params))(
-        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0))
+        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0)
+    )
     rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)
     t_last = jnp.max(jnp.where(jnp.isfinite(ts), ts, t0))
     h = (t_last - t0) / jnp.maximum(stats["num_accepted_steps"], 1)

@@ -108,5 +108,3 @@ class Solution(eqx.Module):
         from ._dataframe import solution_to_dataframe
 
         return solution_to_dataframe(self)
-
-

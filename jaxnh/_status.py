@@ -28,8 +28,7 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "nothing was integrated. Check the argument that holds them."
     )
     bad_report_times = (
-        "ts must be strictly increasing (ts[0] is the start, ts[-1] the end of the run); nothing "
-        "was integrated."
+        "ts must be strictly increasing (ts[0] is the start, ts[-1] the end of the run); nothing was integrated."
     )
     mass_matrix_not_positive_definite = (
         "The mass matrix ∂²T/∂qd² at the initial state is not positive definite (or is singular "
@@ -99,8 +98,14 @@ class InvalidInitialState(SimulationError, ValueError):
     matrix that is not positive definite, inconsistent velocities, ...)."""
 
 
-INPUT_FAILURES = ("non_finite_input", "bad_report_times", "mass_matrix_not_positive_definite",
-                  "inconsistent_velocities", "velocity_free_constraint", "constraints_nonlinear")
+INPUT_FAILURES = (
+    "non_finite_input",
+    "bad_report_times",
+    "mass_matrix_not_positive_definite",
+    "inconsistent_velocities",
+    "velocity_free_constraint",
+    "constraints_nonlinear",
+)
 
 
 def error_for(status) -> SimulationError:
@@ -119,8 +124,10 @@ def describe(status) -> str:
     if code in (int(STATUS.max_steps_reached._value), int(STATUS.max_steps_rejected._value)):
         msg += MAX_STEPS_ADVICE
     if code == int(STATUS.singular._value):
-        msg += (" (a linear solve broke down: with jaxnh's formulations this means the mass matrix or the "
-                "dependent-velocity block became singular during the run)")
+        msg += (
+            " (a linear solve broke down: with jaxnh's formulations this means the mass matrix or the "
+            "dependent-velocity block became singular during the run)"
+        )
     return msg
 
 

@@ -239,9 +239,7 @@ def _run_chunk(fn, layout: _Layout, mesh: Mesh, batched, shared):
         return dyn
 
     spec = P(tuple(mesh.axis_names))
-    dyn = jax.shard_map(
-        per_device, mesh=mesh, in_specs=(spec, P()), out_specs=spec, check_vma=False
-    )(batched, shared)
+    dyn = jax.shard_map(per_device, mesh=mesh, in_specs=(spec, P()), out_specs=spec, check_vma=False)(batched, shared)
     return dyn, out_static[0]
 
 

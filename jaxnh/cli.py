@@ -68,8 +68,11 @@ def main(argv=None) -> int:
     )
     demo.add_argument("--out", default="jaxnh_out", help="folder for the figures and fit.json (default: jaxnh_out)")
     demo.add_argument("--no-fit", action="store_true", help="skip the parameter fit")
-    sub.add_parser("design", help="design the identification experiment (inputs) before measuring; "
-                   "`jaxnh design --help` for its options", add_help=False)
+    sub.add_parser(
+        "design",
+        help="design the identification experiment (inputs) before measuring; `jaxnh design --help` for its options",
+        add_help=False,
+    )
     from .identify.cli import add_fit_parser, run_fit
 
     add_fit_parser(sub)

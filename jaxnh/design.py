@@ -167,7 +167,7 @@ def _forward_value_and_grad(f, theta):
     def g(v):
         parts, i = [], 0
         for x, n in zip(leaves, sizes):
-            parts.append(v[i:i + n].reshape(jnp.shape(x)).astype(x.dtype))
+            parts.append(v[i : i + n].reshape(jnp.shape(x)).astype(x.dtype))
             i += n
         out = f(jax.tree_util.tree_unflatten(treedef, parts))
         return out, out
@@ -175,7 +175,7 @@ def _forward_value_and_grad(f, theta):
     grad, value = jax.jacfwd(g, has_aux=True)(flat)
     parts, i = [], 0
     for x, n in zip(leaves, sizes):
-        parts.append(grad[i:i + n].reshape(jnp.shape(x)).astype(x.dtype))
+        parts.append(grad[i : i + n].reshape(jnp.shape(x)).astype(x.dtype))
         i += n
     return value, jax.tree_util.tree_unflatten(treedef, parts)
 
@@ -238,8 +238,15 @@ def multistart(
         try:
             p, hist = optimize(loss, p0, optimizer=optimizer, **kwargs)
         except FloatingPointError as e:
-            runs.append({"params": p0, "history": np.asarray([]), "accepted": False,
-                         "evaluation": {"value": float("inf")}, "error": str(e)})
+            runs.append(
+                {
+                    "params": p0,
+                    "history": np.asarray([]),
+                    "accepted": False,
+                    "evaluation": {"value": float("inf")},
+                    "error": str(e),
+                }
+            )
             if progress:
                 print(f"  start {i}: failed ({e})", flush=True)
             continue
@@ -250,8 +257,11 @@ def multistart(
         runs.append({"params": p, "history": hist, "accepted": bool(ok), "evaluation": ev})
         if progress:
             more = ", ".join(f"{k} {v:.4g}" for k, v in ev.items() if k != "value" and isinstance(v, float))
-            print(f"  start {i}: loss {hist[0]:.5g} -> {hist[-1]:.5g}, value {ev['value']:.5g}"
-                  f"{' (' + more + ')' if more else ''}, {'acceptable' if ok else 'NOT acceptable'}", flush=True)
+            print(
+                f"  start {i}: loss {hist[0]:.5g} -> {hist[-1]:.5g}, value {ev['value']:.5g}"
+                f"{' (' + more + ')' if more else ''}, {'acceptable' if ok else 'NOT acceptable'}",
+                flush=True,
+            )
     pool = [i for i, r in enumerate(runs) if r["accepted"]] or list(range(len(runs)))
     k = min(pool, key=lambda i: runs[i]["evaluation"]["value"])
     return runs[k]["params"], runs, k

@@ -37,8 +37,15 @@ from jaxtyping import Array, Float
 
 
 __all__ = [
-    "Profile", "Constant", "Fourier", "PiecewiseLinear", "CubicSpline", "Sampled",
-    "Positive", "Bounded", "trainable",
+    "Profile",
+    "Constant",
+    "Fourier",
+    "PiecewiseLinear",
+    "CubicSpline",
+    "Sampled",
+    "Positive",
+    "Bounded",
+    "trainable",
 ]
 
 

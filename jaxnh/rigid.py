@@ -32,8 +32,16 @@ import numpy as np
 
 
 __all__ = [
-    "RigidBodies", "Wheel", "rot_x", "rot_y", "rot_z", "rot_axis", "skew", "vee",
-    "time_derivative", "angular_velocity",
+    "RigidBodies",
+    "Wheel",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "rot_axis",
+    "skew",
+    "vee",
+    "time_derivative",
+    "angular_velocity",
 ]
 
 
@@ -64,11 +72,13 @@ def rot_z(a):
 def skew(w):
     """The cross-product matrix `[w]×` with `[w]× x = w × x`."""
     z = jnp.zeros_like(w[0])
-    return jnp.stack([
-        jnp.stack([z, -w[2], w[1]]),
-        jnp.stack([w[2], z, -w[0]]),
-        jnp.stack([-w[1], w[0], z]),
-    ])
+    return jnp.stack(
+        [
+            jnp.stack([z, -w[2], w[1]]),
+            jnp.stack([w[2], z, -w[0]]),
+            jnp.stack([-w[1], w[0], z]),
+        ]
+    )
 
 
 def vee(W):
@@ -164,11 +174,13 @@ class RigidBodies(eqx.Module):
         out = list(self.inertias(p))
         if len(out) != n:
             raise ValueError(f"RigidBodies `inertias` returned {len(out)} (m, I) pairs for {n} bodies")
-        return [(jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I"))
-                for k, (m, I) in enumerate(out)]
+        return [
+            (jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I")) for k, (m, I) in enumerate(out)
+        ]
 
     def velocities(self, q, qd, t, p):
         """Per body: mass-centre velocity ṙ (3,), m/s, and body angular velocity Ω (3,), rad/s."""
+
         def rates(q_, t_):
             return self._poses(q_, t_, p)
 

@@ -69,8 +69,16 @@ def test_grad_matches_central_difference(method):
 
 def test_forward_mode_gradient_with_forward_adjoint():
     def f(J2):
-        sol = nh.simulate(MECH, params(J2=J2), jnp.zeros(2), jnp.array([2.0, 2.0]), TS,
-                          rtol=1e-10, atol=1e-12, adjoint=diffrax.ForwardMode())
+        sol = nh.simulate(
+            MECH,
+            params(J2=J2),
+            jnp.zeros(2),
+            jnp.array([2.0, 2.0]),
+            TS,
+            rtol=1e-10,
+            atol=1e-12,
+            adjoint=diffrax.ForwardMode(),
+        )
         return sol.qd[-1, 1]
 
     g_fwd = jax.jacfwd(f)(0.05)

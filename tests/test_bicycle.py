@@ -13,7 +13,6 @@ compiled once rather than once per unrolled stage (an unrolled 8th-order step co
 about 5× longer for the same accuracy).
 """
 
-
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -103,8 +102,19 @@ def run(v, kick, ts=TS):
     is consistent as it stands (the recorded residual at t = 0 checks it).
     """
     q, qd = B.upright(v, P)
-    return nh.simulate(B.mechanism("lagrange"), P, q, qd.at[B.ROLL].set(kick), ts, method="lagrange",
-                       independent=B.INDEPENDENT, rtol=1e-10, atol=1e-12, solver=SOLVER, record=("residual", "energy"))
+    return nh.simulate(
+        B.mechanism("lagrange"),
+        P,
+        q,
+        qd.at[B.ROLL].set(kick),
+        ts,
+        method="lagrange",
+        independent=B.INDEPENDENT,
+        rtol=1e-10,
+        atol=1e-12,
+        solver=SOLVER,
+        record=("residual", "energy"),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -119,8 +129,9 @@ def test_small_kick_follows_the_linear_model(runs):
     lin = np.array([scipy.linalg.expm(A * t) @ np.array([0.0, 0.0, 0.01, 0.0]) for t in np.asarray(TS)])
     amp = np.abs(lin[:, :2]).max()
     np.testing.assert_allclose(np.asarray(sol.q)[:, [B.ROLL, B.STEER]], lin[:, :2], atol=1e-3 * amp)
-    np.testing.assert_allclose(np.asarray(sol.qd)[:, [B.ROLL, B.STEER]], lin[:, 2:],
-                               atol=1e-3 * np.abs(lin[:, 2:]).max())
+    np.testing.assert_allclose(
+        np.asarray(sol.qd)[:, [B.ROLL, B.STEER]], lin[:, 2:], atol=1e-3 * np.abs(lin[:, 2:]).max()
+    )
 
 
 def test_self_stable_at_5_and_falls_at_2(runs):

@@ -84,9 +84,19 @@ def test_unrolled_tsit5_takes_diffrax_tsit5_steps():
 
     y0 = {"x": jnp.array([1.0, 0.2, 0.3, -0.4, 0.5]), "v": jnp.zeros(5)}
     ts = jnp.linspace(0.0, 6.0, 25)
-    out = [diffrax.diffeqsolve(diffrax.ODETerm(vf), s, 0.0, 6.0, None, y0, saveat=diffrax.SaveAt(ts=ts),
-                               stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-9))
-           for s in (diffrax.Tsit5(), Tsit5())]
+    out = [
+        diffrax.diffeqsolve(
+            diffrax.ODETerm(vf),
+            s,
+            0.0,
+            6.0,
+            None,
+            y0,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=1e-7, atol=1e-9),
+        )
+        for s in (diffrax.Tsit5(), Tsit5())
+    ]
     assert int(out[0].stats["num_steps"]) == int(out[1].stats["num_steps"])
     ys = [o.ys for o in out]
     assert ys[0] is not None and ys[1] is not None
@@ -139,9 +149,22 @@ def test_forward_sensitivities_reach_arrays_inside_the_formulation():
     Tsit5 at rtol 1e-6; it measures the solver's drift): a finite difference cannot
     resolve it; reverse mode through the same steps can.
     """
+
     def loss(rate, adjoint):
-        sol = nh.simulate(MECH, P, Q0, qd0(P), TS, method="lagrange", stabilization="baumgarte",
-                          baumgarte_rate=rate, adjoint=adjoint, rtol=1e-6, atol=1e-8, solver=diffrax.Tsit5())
+        sol = nh.simulate(
+            MECH,
+            P,
+            Q0,
+            qd0(P),
+            TS,
+            method="lagrange",
+            stabilization="baumgarte",
+            baumgarte_rate=rate,
+            adjoint=adjoint,
+            rtol=1e-6,
+            atol=1e-8,
+            solver=diffrax.Tsit5(),
+        )
         return jnp.sum(sol.qd**2)
 
     a = jax.grad(loss)(3.0, ForwardSensitivity(error_control=False))
@@ -162,8 +185,9 @@ def test_default_gradient_matches_reverse_mode_to_tolerance():
 
 def test_forward_sensitivities_refuse_report_time_derivatives():
     def loss(T):
-        return jnp.sum(nh.simulate(MECH, P, Q0, qd0(P), jnp.linspace(0.0, T, 5), independent=(0,),
-                                   adjoint=ForwardSensitivity()).q)
+        return jnp.sum(
+            nh.simulate(MECH, P, Q0, qd0(P), jnp.linspace(0.0, T, 5), independent=(0,), adjoint=ForwardSensitivity()).q
+        )
 
     with pytest.raises(NotImplementedError, match="report times"):
         jax.grad(loss)(1.0)
@@ -175,8 +199,9 @@ def test_solve_square_pivots_and_differentiates():
     np.testing.assert_allclose(solve_square(A, b), np.linalg.solve(np.asarray(A), np.asarray(b)), rtol=1e-12)
     As = A + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (8, 3, 3))
     xs = jax.vmap(solve_square, in_axes=(0, None))(As, b[:, 0])
-    np.testing.assert_allclose(xs, np.linalg.solve(np.asarray(As), np.asarray(b[:, 0])[None, :, None])[..., 0],
-                               rtol=1e-10)
+    np.testing.assert_allclose(
+        xs, np.linalg.solve(np.asarray(As), np.asarray(b[:, 0])[None, :, None])[..., 0], rtol=1e-10
+    )
     g = jax.grad(lambda a: jnp.sum(solve_square(a, b[:, 0]) ** 2))(A)
     g_ref = jax.grad(lambda a: jnp.sum(jnp.linalg.solve(a, b[:, 0]) ** 2))(A)
     np.testing.assert_allclose(g, g_ref, rtol=1e-9)

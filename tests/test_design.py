@@ -33,8 +33,9 @@ def test_chebyshev_matches_numpy_value_and_derivative():
     C = np.polynomial.chebyshev
     np.testing.assert_allclose(jax.vmap(law)(jnp.asarray(t)), C.chebval(x, coef), rtol=1e-14, atol=1e-14)
     # d/dt = d/dx · dx/dt with dx/dt = 2 / (t1 − t0) = 0.5
-    np.testing.assert_allclose(jax.vmap(law.derivative)(jnp.asarray(t)), 0.5 * C.chebval(x, C.chebder(coef)),
-                               rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(
+        jax.vmap(law.derivative)(jnp.asarray(t)), 0.5 * C.chebval(x, C.chebder(coef)), rtol=1e-13, atol=1e-13
+    )
     with pytest.raises(ValueError, match="t1 > t0"):
         Chebyshev(coef, 2.0, 2.0)
     with pytest.raises(ValueError, match="non-empty 1-D"):

@@ -57,8 +57,17 @@ def constant_ratio():
     a = (M1 + U M2) / (J1 + J2 U²)."""
     p = V.VariatorParams(J1, J2, Constant(U), M1, M2)
     ts = np.linspace(0.0, 2.0, 101)
-    exp = experiment(V.mechanism(), p, ts, free=("J1", "J2"), positive=("J1", "J2"),
-                     noise={"phi1": SIG[0], "phi2": SIG[1]}, q0=[0.1, -0.2], qd0=[W0, U * W0], rtol=1e-10)
+    exp = experiment(
+        V.mechanism(),
+        p,
+        ts,
+        free=("J1", "J2"),
+        positive=("J1", "J2"),
+        noise={"phi1": SIG[0], "phi2": SIG[1]},
+        q0=[0.1, -0.2],
+        qd0=[W0, U * W0],
+        rtol=1e-10,
+    )
     return exp, predict(exp), ts
 
 
@@ -138,9 +147,17 @@ def test_design_gradient_matches_central_differences():
     M1x = Bounded(Fourier(0.1, cos=[0.4, -0.3], sin=[0.7, 0.2], period=2.0), -0.27, 0.27)
     p = V.VariatorParams(T["J1"], T["J2"], Ux, M1x, -0.08)
     ts = np.linspace(0.0, 2.0, 101)
-    exp = experiment(V.mechanism(), p, ts, free=("J1", "J2", "U21"), positive=("J1", "J2", "U21"),
-                     noise={"phi1": encoder_noise(8192, 3e-4), "phi2": encoder_noise(4096, 6e-4)},
-                     qd0=[4.0, 3.2], rtol=1e-12, atol=1e-12)
+    exp = experiment(
+        V.mechanism(),
+        p,
+        ts,
+        free=("J1", "J2", "U21"),
+        positive=("J1", "J2", "U21"),
+        noise={"phi1": encoder_noise(8192, 3e-4), "phi2": encoder_noise(4096, 6e-4)},
+        qd0=[4.0, 3.2],
+        rtol=1e-12,
+        atol=1e-12,
+    )
     loss = design_loss(exp, "A", of=("J1",), limits=Limits(multiplier=0.2, std={"J2": 1e-4}))
     spec = input_spec(p, ("M1",))
     import equinox as eqx
@@ -167,8 +184,12 @@ def test_design_cli_refuses_bad_input(tmp_path, capsys):
     (tmp_path / "o" / "design.json").mkdir(parents=True)
     assert design_main(["--out", str(tmp_path / "o")]) == 2
     assert "is a folder" in capsys.readouterr().err
-    for bad, msg in ((["--harmonics", "0"], "--harmonics"), (["--lambda-max", "-1"], "--lambda-max"),
-                     (["--of", "J3"], "--of"), (["--energy-max", "nan"], "--energy-max")):
+    for bad, msg in (
+        (["--harmonics", "0"], "--harmonics"),
+        (["--lambda-max", "-1"], "--lambda-max"),
+        (["--of", "J3"], "--of"),
+        (["--energy-max", "nan"], "--energy-max"),
+    ):
         assert design_main(["--out", str(tmp_path / "ok"), *bad]) == 2
         assert msg in capsys.readouterr().err
     assert design_main(["--inputs", "M3"]) == 2  # argparse's own usage error
@@ -202,13 +223,18 @@ def test_fit_of_an_informative_record_converges_cleanly():
     ts = jnp.asarray(t)
     sol = nh.simulate(V.mechanism(), p, jnp.zeros(2), jnp.array([4.0, 3.2]), ts, rtol=1e-12, atol=1e-12)
     y = np.asarray(mk.measure(sol.q, jax.random.PRNGKey(1)))
-    rec = Record(t, {"phi1": y[:, 0], "phi2": y[:, 1]},
-                 {"M1": np.asarray(jax.vmap(M1)(ts)), "M2": np.asarray(jax.vmap(truth.M2)(ts))}, "issue 18")
+    rec = Record(
+        t,
+        {"phi1": y[:, 0], "phi2": y[:, 1]},
+        {"M1": np.asarray(jax.vmap(M1)(ts)), "M2": np.asarray(jax.vmap(truth.M2)(ts))},
+        "issue 18",
+    )
     res = fit_variator(rec)
     assert res.converged and res.iterations <= 20, res.message
     assert res.gn_step < 0.05
-    z = (np.asarray([res.estimates["J1"]["value"], res.estimates["J2"]["value"]]) - [truth.J1, truth.J2]) / \
-        np.asarray([res.estimates["J1"]["std"], res.estimates["J2"]["std"]])
+    z = (np.asarray([res.estimates["J1"]["value"], res.estimates["J2"]["value"]]) - [truth.J1, truth.J2]) / np.asarray(
+        [res.estimates["J1"]["std"], res.estimates["J2"]["std"]]
+    )
     assert np.all(np.abs(z) < 3.5)
 
 
@@ -243,8 +269,9 @@ def test_multistart_keeps_the_best_acceptable_start_and_forward_gradients_agree(
         return jnp.minimum((x - 1.0) ** 2 - 0.5, (x + 1.0) ** 2)
 
     starts = [{"x": jnp.array([0.8])}, {"x": jnp.array([-0.7])}, {"x": jnp.array([-1.3])}]
-    best, runs, k = multistart(loss, starts, accept=lambda p: (float(p["x"][0]) < 0, {"value": float(loss(p))}),
-                               steps=200, learning_rate=0.05)
+    best, runs, k = multistart(
+        loss, starts, accept=lambda p: (float(p["x"][0]) < 0, {"value": float(loss(p))}), steps=200, learning_rate=0.05
+    )
     assert [r["accepted"] for r in runs] == [False, True, True]
     assert k in (1, 2) and abs(float(best["x"][0]) + 1.0) < 1e-3
     # without the constraint the deeper well wins

@@ -50,8 +50,17 @@ def runs(reference):
     out = {}
     for method, stab in CASES:
         record = ("energy", "residual") + (("multipliers",) if method != "substituted" else ())
-        sol = nh.simulate(MECH, p32, *initial(p32), TS.astype(F32), method=method, stabilization=stab,
-                          rtol=1e-5, atol=1e-6, record=record)
+        sol = nh.simulate(
+            MECH,
+            p32,
+            *initial(p32),
+            TS.astype(F32),
+            method=method,
+            stabilization=stab,
+            rtol=1e-5,
+            atol=1e-6,
+            record=record,
+        )
         out[(method, stab)] = dict(
             sol=sol,
             err_q=np.max(np.abs(np.asarray(sol.q, np.float64) - q_ref)) / np.max(np.abs(q_ref)),
@@ -107,8 +116,12 @@ def test_float32_accelerations_and_consistent_velocities():
     @jax.jit
     def everything(p, q, qd, t):
         v = nh.consistent_velocities(MECH, q, qd, t, p)
-        return [v] + [x for m in ("lagrange", "appell", "substituted")
-                      for x in nh.accelerations(MECH, q, v, t, p, method=m) if x is not None]
+        return [v] + [
+            x
+            for m in ("lagrange", "appell", "substituted")
+            for x in nh.accelerations(MECH, q, v, t, p, method=m)
+            if x is not None
+        ]
 
     out64 = everything(p64, q, qd, jnp.asarray(t))
     out32 = everything(p32, q.astype(F32), qd.astype(F32), jnp.asarray(t, F32))

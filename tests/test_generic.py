@@ -19,12 +19,14 @@ P = {"m": 1.3, "I": 0.4, "J": 0.2, "r": 0.3, "k": 0.8, "c": 0.05}
 
 def mass_matrix(q, p):
     """Positive definite, configuration dependent."""
-    C = jnp.array([
-        [1.0, 0.2 * jnp.sin(q[2]), 0.0, 0.1 * jnp.cos(q[3])],
-        [0.0, 1.0, 0.3 * jnp.cos(q[2]), 0.0],
-        [0.1 * jnp.sin(q[3]), 0.0, 1.0, 0.2 * jnp.sin(q[2] - q[3])],
-        [0.0, 0.1, 0.0, 1.0],
-    ])
+    C = jnp.array(
+        [
+            [1.0, 0.2 * jnp.sin(q[2]), 0.0, 0.1 * jnp.cos(q[3])],
+            [0.0, 1.0, 0.3 * jnp.cos(q[2]), 0.0],
+            [0.1 * jnp.sin(q[3]), 0.0, 1.0, 0.2 * jnp.sin(q[2] - q[3])],
+            [0.0, 0.1, 0.0, 1.0],
+        ]
+    )
     return C.T @ jnp.diag(jnp.array([p["m"], p["m"], p["I"], p["J"]])) @ C
 
 
@@ -37,10 +39,12 @@ def kinetic(q, qd, t, p):
 def constraints(q, qd, t, p):
     """A knife edge on a moving surface and a rolling wheel with a varying ratio."""
     x, y, th, ph = q
-    return jnp.stack([
-        qd[0] * jnp.sin(th) - qd[1] * jnp.cos(th) - 0.1 * jnp.sin(t),
-        p["r"] * (1 + 0.2 * jnp.sin(t)) * qd[3] - (qd[0] * jnp.cos(th) + qd[1] * jnp.sin(th)),
-    ])
+    return jnp.stack(
+        [
+            qd[0] * jnp.sin(th) - qd[1] * jnp.cos(th) - 0.1 * jnp.sin(t),
+            p["r"] * (1 + 0.2 * jnp.sin(t)) * qd[3] - (qd[0] * jnp.cos(th) + qd[1] * jnp.sin(th)),
+        ]
+    )
 
 
 def forces(q, qd, t, p):
@@ -51,8 +55,9 @@ def potential(q, t, p):
     return 0.5 * p["k"] * (q[0] ** 2 + 0.5 * q[1] ** 2) + 0.3 * jnp.cos(q[2])
 
 
-MECH = nh.Mechanism(kinetic, constraints=constraints, forces=forces, potential=potential,
-                    names=("x", "y", "theta", "phi"))
+MECH = nh.Mechanism(
+    kinetic, constraints=constraints, forces=forces, potential=potential, names=("x", "y", "theta", "phi")
+)
 
 
 def random_state(key):
@@ -86,9 +91,11 @@ def test_appell_equals_lagrange_accelerations(states, independent):
     a_l, lam_l, a_a, lam_a = jax.jit(jax.vmap(both))(q, qd, t)
     np.testing.assert_allclose(a_a, a_l, rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(lam_a, lam_l, rtol=1e-10, atol=1e-10)
+
     # accelerations satisfy the differentiated constraints
     def cdot(q, qd, qdd, t):
         return jax.jvp(lambda a, b, s: constraints(a, b, s, P), (q, qd, t), (qd, qdd, jnp.ones_like(t)))[1]
+
     assert np.max(np.abs(jax.vmap(cdot)(q, qd, a_l, t))) < 1e-10
 
 
@@ -122,6 +129,7 @@ def test_constraints_hold_along_the_motion(trajectories):
 def test_redundant_constraints_give_minimum_norm_multipliers():
     """The same knife-edge constraint twice (and a multiple of it): accelerations unchanged,
     multipliers finite and of minimum norm (split equally)."""
+
     def c_red(q, qd, t, p):
         c = constraints(q, qd, t, p)
         return jnp.stack([c[0], c[1], c[0], 2.0 * c[1]])
@@ -138,6 +146,7 @@ def test_redundant_constraints_give_minimum_norm_multipliers():
 
 def test_appell_with_user_acceleration_energy_matches():
     """S supplied by the user (½ qddᵀ M qdd + qddᵀ h from the known M) gives the same."""
+
     def S(q, qd, qdd, t, p):
         M = mass_matrix(q, p)
         h = mass_and_velocity_terms(MECH, q, qd, t, p)[1]
@@ -164,6 +173,7 @@ def test_nonlinear_constraint_by_chetaev_conserves_energy_and_formulations_agree
     the constraint force Aᵀλ does power λ A qd = λ c = 0: with conservative
     forces only, T + V is conserved.
     """
+
     def T(q, qd, t, p):
         return 0.5 * (1.2 * qd[0] ** 2 + 1.2 * qd[1] ** 2 + 0.3 * qd[2] ** 2)
 

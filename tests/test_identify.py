@@ -26,8 +26,13 @@ from jaxnh.models import variator as V
 from jaxnh.profiles import CubicSpline, Profile
 
 
-TRUE = {"J1": 0.025, "J2": 0.04, "U21": np.array([1.2, 1.1, 0.95, 0.85, 0.9, 1.05, 1.15]), "w0": 3.0,
-        "phi0": np.array([0.1, -0.2])}
+TRUE = {
+    "J1": 0.025,
+    "J2": 0.04,
+    "U21": np.array([1.2, 1.1, 0.95, 0.85, 0.9, 1.05, 1.15]),
+    "w0": 3.0,
+    "phi0": np.array([0.1, -0.2]),
+}
 # starting guess off by 30–40 % in every parameter
 START = {"J1": 1.4 * TRUE["J1"], "J2": 0.65 * TRUE["J2"], "U21": TRUE["U21"] * np.array([1.3, 0.7] * 3 + [1.3])}
 NOISE = 1e-4  # rad: weights only (the data below are noise-free)
@@ -44,15 +49,17 @@ def clean_record(with_torques: bool = True) -> Record:
     U = CubicSpline(ratio_knots(base), TRUE["U21"])
     p = params_for(base, TRUE["J1"], TRUE["J2"], U)
     qd0 = jnp.array([TRUE["w0"], TRUE["U21"][0] * TRUE["w0"]])
-    q = np.asarray(nh.simulate(V.mechanism(), p, jnp.asarray(TRUE["phi0"]), qd0, jnp.asarray(emb.t),
-                               solver=fit_solver(None, p, 1e-8)).q)
+    q = np.asarray(
+        nh.simulate(
+            V.mechanism(), p, jnp.asarray(TRUE["phi0"]), qd0, jnp.asarray(emb.t), solver=fit_solver(None, p, 1e-8)
+        ).q
+    )
     return Record(emb.t, {"phi1": q[:, 0], "phi2": q[:, 1]}, inputs, "clean")
 
 
 def fit_from_start(record, **kw):
     knots = ratio_knots(record)
-    return fit_variator(record, J1=START["J1"], J2=START["J2"], U21=CubicSpline(knots, START["U21"]),
-                        noise=NOISE, **kw)
+    return fit_variator(record, J1=START["J1"], J2=START["J2"], U21=CubicSpline(knots, START["U21"]), noise=NOISE, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +74,12 @@ def recovered(clean):
 
 def rel_err(result):
     e = result.estimates
-    return np.concatenate([[e["J1"]["value"] / TRUE["J1"] - 1, e["J2"]["value"] / TRUE["J2"] - 1],
-                           np.asarray(e["U21"]["value"]) / TRUE["U21"] - 1])
+    return np.concatenate(
+        [
+            [e["J1"]["value"] / TRUE["J1"] - 1, e["J2"]["value"] / TRUE["J2"] - 1],
+            np.asarray(e["U21"]["value"]) / TRUE["U21"] - 1,
+        ]
+    )
 
 
 # --- acceptance 1: noise-free data, start 30–40 % off ----------------------------------------
@@ -101,8 +112,11 @@ def test_band_is_the_delta_method(recovered):
 def test_zero_torques_only_the_ratio_of_inertias_is_identifiable():
     rec = clean_record(with_torques=False)
     # the warning itself says what is wrong and names the ratio the data do determine
-    with pytest.warns(UserWarning, match=r"NOT IDENTIFIABLE: scaling J[12] and J[12] by the same factor .*"
-                                         r"only (J1/J2|J2/J1) is determined"):
+    with pytest.warns(
+        UserWarning,
+        match=r"NOT IDENTIFIABLE: scaling J[12] and J[12] by the same factor .*"
+        r"only (J1/J2|J2/J1) is determined",
+    ):
         r = fit_from_start(rec)
     assert not r.identifiable
     (entry,) = r.identifiability.undetermined
@@ -241,8 +255,16 @@ def test_one_encoder_is_enough_with_torques(clean, recovered):
     # its true value so that the solver's step sequence — and with it the data —
     # is reproduced exactly at the truth.
     knots = ratio_knots(clean)
-    r = fit_variator(clean, J1=1.03 * TRUE["J1"], J2=TRUE["J2"] / 1.03, U21=CubicSpline(knots, 1.03 * TRUE["U21"]),
-                     noise=NOISE, observe=("phi2",), q0=TRUE["phi0"], max_iterations=200)
+    r = fit_variator(
+        clean,
+        J1=1.03 * TRUE["J1"],
+        J2=TRUE["J2"] / 1.03,
+        U21=CubicSpline(knots, 1.03 * TRUE["U21"]),
+        noise=NOISE,
+        observe=("phi2",),
+        q0=TRUE["phi0"],
+        max_iterations=200,
+    )
     assert r.observe == ("phi2",) and "phi1(t0)" not in r.estimates
     assert r.converged and r.identifiable
     assert r.identifiability.condition > 5 * recovered.identifiability.condition
@@ -276,8 +298,10 @@ def good_rows(n=25, t=None):
 BAD_CSV = [
     ("t,phi1,M1,M2\n" + "\n".join(f"{0.01 * i},0,0,0" for i in range(25)), r"missing column\(s\) \['phi2'\]"),
     ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.09, np.arange(10, 24) * 0.01]), "repeated time"),
-    ("t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.05, np.arange(11, 25) * 0.01]),
-     "decreasing time"),
+    (
+        "t,phi1,phi2,M1,M2\n" + good_rows(t=np.r_[np.arange(10) * 0.01, 0.05, np.arange(11, 25) * 0.01]),
+        "decreasing time",
+    ),
     ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "nan,-0.1", 1), "non-finite values"),
     ("t,phi1,phi2,M1,M2\n" + good_rows(5), "too few samples: 5"),
     ("t,phi1,phi2,M1,M2\n" + good_rows().replace("0.1,-0.1", "abc,-0.1", 1), "'abc' is not a number"),
@@ -306,8 +330,9 @@ def test_cli_exit_status_in_a_fresh_process(tmp_path):
     # the installed entry point's way: python -m jaxnh.cli (sys.exit(main())); a missing file too
     text, match = BAD_CSV[0]
     for path, what in ((write(tmp_path, text), match), (tmp_path / "no_such.csv", "No such file")):
-        proc = subprocess.run([sys.executable, "-m", "jaxnh.cli", "fit", str(path)], capture_output=True, text=True,
-                              timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-m", "jaxnh.cli", "fit", str(path)], capture_output=True, text=True, timeout=120
+        )
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.startswith("jaxnh fit: ") and "Traceback" not in proc.stderr
         assert re.search(what, proc.stderr), proc.stderr

@@ -36,8 +36,11 @@ Y0 = jnp.array([1.0, 0.0])
 
 
 def _lean_osc(method, report, dt0=None):
-    return jax.jit(lambda y0, w2, rtol, atol: lean_solve(oscillator, y0, w2, TS, method=method, rtol=rtol, atol=atol,
-                                                          report=report, dt0=dt0))
+    return jax.jit(
+        lambda y0, w2, rtol, atol: lean_solve(
+            oscillator, y0, w2, TS, method=method, rtol=rtol, atol=atol, report=report, dt0=dt0
+        )
+    )
 
 
 # one compiled function per (method, report), shared by the tests below
@@ -50,9 +53,17 @@ def test_same_steps_as_diffrax(method):
     # diffrax 0.7.2's PIDController starts every ODE with dt0 = 0.01 when dt0=None (its initial-step
     # selection sees a WrapTerm, not an ODETerm); with that dt0 given to both, the two loops must take
     # exactly the same steps and agree to rounding.
-    d = diffrax.diffeqsolve(diffrax.ODETerm(oscillator), METHODS[method](), 0.0, 10.0, 0.01, Y0, args=4.0,
-                            saveat=diffrax.SaveAt(ts=TS),
-                            stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10))
+    d = diffrax.diffeqsolve(
+        diffrax.ODETerm(oscillator),
+        METHODS[method](),
+        0.0,
+        10.0,
+        0.01,
+        Y0,
+        args=4.0,
+        saveat=diffrax.SaveAt(ts=TS),
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
+    )
     s = OSC_DT[method](Y0, 4.0, 1e-8, 1e-10)
     assert int(s.status) == 0
     assert int(s.stats["num_steps"]) == int(d.stats["num_steps"])
@@ -87,8 +98,9 @@ def test_order_of_convergence_fixed_steps(method, order):
     @jax.jit
     def solve(h):
         ts = jnp.linspace(0.0, T, 9)  # report times on the step grid for h = T/8/2^k
-        return lean_solve(oscillator, Y0, 4.0, ts, method=method, rtol=1e30, atol=1e30, dt0=h, factormax=1.0,
-                          report="step").ys[-1]
+        return lean_solve(
+            oscillator, Y0, 4.0, ts, method=method, rtol=1e30, atol=1e30, dt0=h, factormax=1.0, report="step"
+        ).ys[-1]
 
     hs = [T / 16, T / 32, T / 64] if method == "tsit5" else [T / 8, T / 16, T / 32]
     exact = np.array([np.cos(2 * T), -2 * np.sin(2 * T)])
@@ -106,8 +118,9 @@ def test_dense_output_order(method, order):
     @jax.jit
     def solve(h):
         t_mid = 0.37 * h
-        return lean_solve(oscillator, Y0, 4.0, jnp.stack([0.0, t_mid]), method=method, rtol=1e30, atol=1e30, dt0=h,
-                          factormax=1.0).ys[-1], t_mid
+        return lean_solve(
+            oscillator, Y0, 4.0, jnp.stack([0.0, t_mid]), method=method, rtol=1e30, atol=1e30, dt0=h, factormax=1.0
+        ).ys[-1], t_mid
 
     errs = []
     hs = [T / 2, T / 4, T / 8]
@@ -139,8 +152,7 @@ def test_exponential_jvp_and_vmap():
     np.testing.assert_allclose(dys, np.asarray(ts)[:, None] * exact, rtol=1e-9, atol=1e-12)
     v = jnp.array([0.3, 1.0, -2.0])
     _, dys0 = jax.jvp(lambda a: solve(a, lam).ys, (y0,), (v,))
-    np.testing.assert_allclose(dys0, np.asarray(v)[None] * np.exp(lam * np.asarray(ts))[:, None], rtol=1e-9,
-                               atol=1e-12)
+    np.testing.assert_allclose(dys0, np.asarray(v)[None] * np.exp(lam * np.asarray(ts))[:, None], rtol=1e-9, atol=1e-12)
 
     # vmap over rates with different step counts: each member equals its own solve, finished ones frozen
     lams = jnp.array([-0.8, 0.4, -6.0, 0.0])
@@ -188,7 +200,8 @@ def test_report_times_denser_than_steps(method):
 def test_float32():
     ts = jnp.linspace(0.0, 10.0, 11, dtype=jnp.float32)
     s = jax.jit(lambda y0: lean_solve(oscillator, y0, jnp.float32(4.0), ts, rtol=1e-5, atol=1e-7))(
-        Y0.astype(jnp.float32))
+        Y0.astype(jnp.float32)
+    )
     assert s.ys.dtype == jnp.float32
     assert int(s.status) == 0
     err = np.max(np.abs(np.asarray(s.ys, float) - np.stack([np.cos(2 * ts), -2 * np.sin(2 * ts)], 1)))
@@ -280,8 +293,13 @@ def test_post_step_projection_and_reject():
 def _variator_field(method):
     from jaxnh.equations import formulation
 
-    p = V.VariatorParams(J1=0.02, J2=0.05, U21=__import__("jaxnh").profiles.Fourier(1.5, cos=[0.0], sin=[0.5],
-                                                                                     period=np.pi), M1=0.3, M2=-0.1)
+    p = V.VariatorParams(
+        J1=0.02,
+        J2=0.05,
+        U21=__import__("jaxnh").profiles.Fourier(1.5, cos=[0.0], sin=[0.5], period=np.pi),
+        M1=0.3,
+        M2=-0.1,
+    )
     w0 = 10.0
     ts = jnp.linspace(0.0, 10.0, 101)
     q0, qd0 = jnp.zeros(2), jnp.array([w0, 1.5 * w0])
@@ -314,9 +332,17 @@ def test_variator_same_as_diffrax_with_tangents():
     # report times 1 s apart: in "interpolate" mode a step may hold at most 2 report times strictly
     # inside it, a limit that 0.1 s apart would bind on a few steps (and change them from diffrax's)
     ts = jnp.linspace(0.0, 10.0, 11)
-    d = diffrax.diffeqsolve(diffrax.ODETerm(vf), DOP853(), ts[0], ts[-1], 0.01, y0, args=p,
-                            saveat=diffrax.SaveAt(ts=ts),
-                            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12))
+    d = diffrax.diffeqsolve(
+        diffrax.ODETerm(vf),
+        DOP853(),
+        ts[0],
+        ts[-1],
+        0.01,
+        y0,
+        args=p,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+    )
     s2 = lean_solve(vf, y0, p, ts, method="dop853", rtol=1e-10, atol=1e-12, dt0=0.01, report="interpolate")
     assert int(s2.stats["num_steps"]) == int(d.stats["num_steps"])
     assert d.ys is not None
@@ -330,9 +356,18 @@ def test_variator_same_as_diffrax_with_tangents():
 
     def diffrax_ys(J1):
         q = V.VariatorParams(J1, p.J2, p.U21, p.M1, p.M2)
-        return diffrax.diffeqsolve(diffrax.ODETerm(vf), DOP853(), ts[0], ts[-1], 0.01, y0, args=q,
-                                   saveat=diffrax.SaveAt(ts=ts), adjoint=diffrax.ForwardMode(),
-                                   stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12)).ys
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(vf),
+            DOP853(),
+            ts[0],
+            ts[-1],
+            0.01,
+            y0,
+            args=q,
+            saveat=diffrax.SaveAt(ts=ts),
+            adjoint=diffrax.ForwardMode(),
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12),
+        ).ys
 
     one = jnp.ones_like(p.J1)
     _, d_lean = jax.jvp(lean_ys, (p.J1,), (one,))

@@ -88,5 +88,6 @@ def test_argument_errors():
     with pytest.raises(ValueError, match="accelerations"):
         linearize(WHEEL, WP, q, qd, speeds=(0,), accelerations=jnp.zeros(2))
     # the automatic choice of speeds works on traced values too (made inside the program)
-    np.testing.assert_allclose(jax.jit(lambda a: linearize(WHEEL, WP, a, qd).A)(q), linearize(WHEEL, WP, q, qd).A,
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        jax.jit(lambda a: linearize(WHEEL, WP, a, qd).A)(q), linearize(WHEEL, WP, q, qd).A, rtol=1e-12, atol=1e-12
+    )

@@ -35,8 +35,19 @@ TH0, V0, W0 = -0.7, 0.2, 1.0  # the heading stays in (−0.7, 0.77): ẏ is a re
 def sleigh_runs():
     q0 = jnp.array([0.0, 0.0, TH0])
     ts = jnp.linspace(0.0, 10.0, 101)
-    return ts, {m: nh.simulate(S.mechanism(), SLEIGH_P, q0, S.initial_velocities(q0, V0, W0), ts, method=m,
-                               record=("energy", "residual"), **TOL) for m in ("lagrange", "appell")}
+    return ts, {
+        m: nh.simulate(
+            S.mechanism(),
+            SLEIGH_P,
+            q0,
+            S.initial_velocities(q0, V0, W0),
+            ts,
+            method=m,
+            record=("energy", "residual"),
+            **TOL,
+        )
+        for m in ("lagrange", "appell")
+    }
 
 
 @pytest.mark.parametrize("method", ["lagrange", "appell"])
@@ -89,8 +100,9 @@ def disc_linear():
     """Upright rolling at SPINS and the steady circular motion, linearised in one compile per method."""
     states = [D.upright(s, DISC_P) for s in SPINS] + [D.steady_state(LEAN, YAW_RATE, DISC_P)]
     q, qd = (jnp.stack(x) for x in zip(*states))
-    return {m: jax.jit(jax.vmap(lambda a, b: D.linearized(a, b, DISC_P, method=m)))(q, qd)
-            for m in ("lagrange", "appell")}
+    return {
+        m: jax.jit(jax.vmap(lambda a, b: D.linearized(a, b, DISC_P, method=m)))(q, qd) for m in ("lagrange", "appell")
+    }
 
 
 def test_disc_upright_lean_mode_and_stability_boundary(disc_linear):
@@ -127,8 +139,11 @@ def disc_runs():
     ts = jnp.linspace(0.0, 5.0, 51)
     q0, qd0 = D.steady_state(LEAN, YAW_RATE, DISC_P)
     starts = {"steady": (q0, qd0), "disturbed": (q0, qd0.at[3].set(0.4))}
-    return ts, {(k, m): nh.simulate(D.mechanism(), DISC_P, a, b, ts, method=m, record=("energy", "residual"), **TOL)
-                for k, (a, b) in starts.items() for m in ("lagrange", "appell")}
+    return ts, {
+        (k, m): nh.simulate(D.mechanism(), DISC_P, a, b, ts, method=m, record=("energy", "residual"), **TOL)
+        for k, (a, b) in starts.items()
+        for m in ("lagrange", "appell")
+    }
 
 
 def test_disc_steady_circular_motion(disc_linear, disc_runs):

@@ -55,8 +55,11 @@ def test_cubic_spline_reproduces_straight_lines_and_is_linear_in_values():
     ts = np.linspace(-1.0, 4.0, 41)
     np.testing.assert_allclose(ev(line, ts), 0.7 - 1.3 * ts, atol=1e-12)
     a, b = RNG.normal(size=8), RNG.normal(size=8)
-    np.testing.assert_allclose(ev(CubicSpline(KNOTS, 2 * a - b), ts),
-                               2 * ev(CubicSpline(KNOTS, a), ts) - ev(CubicSpline(KNOTS, b), ts), atol=1e-12)
+    np.testing.assert_allclose(
+        ev(CubicSpline(KNOTS, 2 * a - b), ts),
+        2 * ev(CubicSpline(KNOTS, a), ts) - ev(CubicSpline(KNOTS, b), ts),
+        atol=1e-12,
+    )
 
 
 def test_piecewise_linear_and_sampled():
@@ -99,8 +102,9 @@ def test_positive_and_bounded_keep_their_range():
 
 def test_trainable_marks_values_not_knots_or_period():
     s = CubicSpline(KNOTS, VALUES)
-    m = trainable({"J": jnp.ones(()), "U": s, "F": Fourier(1.0, sin=[0.1], period=2.0),
-                   "P": Positive.of(Constant(3.0))})
+    m = trainable(
+        {"J": jnp.ones(()), "U": s, "F": Fourier(1.0, sin=[0.1], period=2.0), "P": Positive.of(Constant(3.0))}
+    )
     assert m["J"] is True
     assert m["U"].values is True and m["U"].knots is False
     assert m["F"].mean and m["F"].sin and m["F"].cos and m["F"].period is False

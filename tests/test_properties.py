@@ -43,7 +43,10 @@ import jaxnh as nh
 # Fixed, reproducible profile: derandomized (same examples every run, no database),
 # no deadline (the first example of each shape includes compilation).
 settings.register_profile(
-    "jaxnh-properties", derandomize=True, deadline=None, database=None,
+    "jaxnh-properties",
+    derandomize=True,
+    deadline=None,
+    database=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 PROFILE = settings.get_profile("jaxnh-properties")
@@ -57,9 +60,25 @@ HORIZON = 1.0  # s
 def coefficient_shapes(s, m):
     """Shapes of the coefficient arrays of a random (s, m) mechanism."""
     return dict(
-        R0=(s, s), R1=(s, s), ph=(s, s), d=(s,), g=(s,), gw=(), e0=(),
-        A0=(m, s - m), E=(m, m), A1=(m, s), wa=(m, s), b=(m,), wb=(),
-        C=(s, s), F=(s,), wf=(), K=(s, s), kv=(s,), kt=(),
+        R0=(s, s),
+        R1=(s, s),
+        ph=(s, s),
+        d=(s,),
+        g=(s,),
+        gw=(),
+        e0=(),
+        A0=(m, s - m),
+        E=(m, m),
+        A1=(m, s),
+        wa=(m, s),
+        b=(m,),
+        wb=(),
+        C=(s, s),
+        F=(s,),
+        wf=(),
+        K=(s, s),
+        kv=(s,),
+        kt=(),
     )
 
 
@@ -114,12 +133,14 @@ def energy_function(q, qd, t, c):
 
 def power(q, qd, t, lam, c):
     """Q·qd − λᵀ a0 − ∂T/∂t + ∂V/∂t, W, and a scale of its terms (for tolerances)."""
-    terms = jnp.stack([
-        forces(q, qd, t, c) @ qd,
-        -lam @ free_term(q, t, c),
-        -jax.grad(kinetic, argnums=2)(q, qd, t, c),
-        jax.grad(potential, argnums=1)(q, t, c),
-    ])
+    terms = jnp.stack(
+        [
+            forces(q, qd, t, c) @ qd,
+            -lam @ free_term(q, t, c),
+            -jax.grad(kinetic, argnums=2)(q, qd, t, c),
+            jax.grad(potential, argnums=1)(q, t, c),
+        ]
+    )
     return jnp.sum(terms), jnp.sum(jnp.abs(terms))
 
 

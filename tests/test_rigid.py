@@ -37,8 +37,9 @@ def disc_T_by_hand(q, qd, p):
     x, y, psi, phi, th = q
     xd, yd, psid, phid, thd = qd
     r = p["r"]
-    c = lambda q_: jnp.stack([q_[0] + r * jnp.sin(q_[2]) * jnp.sin(q_[3]), q_[1] - r * jnp.cos(q_[2]) * jnp.sin(q_[3]),
-                              r * jnp.cos(q_[3])])
+    c = lambda q_: jnp.stack(
+        [q_[0] + r * jnp.sin(q_[2]) * jnp.sin(q_[3]), q_[1] - r * jnp.cos(q_[2]) * jnp.sin(q_[3]), r * jnp.cos(q_[3])]
+    )
     v = jax.jvp(c, (q,), (qd,))[1]
     w1, w2, w3 = phid, psid * jnp.sin(phi) + thd, psid * jnp.cos(phi)
     return 0.5 * p["m"] * v @ v + 0.5 * (p["I1"] * (w1**2 + w3**2) + p["I3"] * w2**2)
@@ -88,7 +89,7 @@ def test_potential_and_body_velocities():
     r, _ = asym_poses(q, 0.0, p)[0]
     assert np.isclose(ASYM.potential(q, 0.0, p), 1.7 * 9.81 * r[2])
     # a spin q̇5 about the body y axis, plus the rheonomic 0.3 rad/s, is Ω = (0, q̇5 + 0.3, 0) in body axes
-    (_, w), = ASYM.velocities(q, jnp.zeros(6).at[5].set(2.0), 0.0, p)
+    ((_, w),) = ASYM.velocities(q, jnp.zeros(6).at[5].set(2.0), 0.0, p)
     np.testing.assert_allclose(w, [0.0, 2.0 + 0.3, 0.0], atol=1e-14)
 
 
@@ -102,8 +103,9 @@ def test_wheel_contact_point_and_rolling():
     np.testing.assert_allclose(P, np.c_[qs[:, :2], np.zeros(20)], atol=1e-15)
     np.testing.assert_allclose(jax.vmap(lambda q: D.WHEEL.height(q, 0.0, p))(qs), 0.0, atol=1e-15)
     # rolling: the contact point moves at r θ̇ along the heading, whatever ψ̇, φ̇ (see disc.py)
-    rolling_qd = (qds.at[:, 0].set(p["r"] * qds[:, 4] * jnp.cos(qs[:, 2]))
-                  .at[:, 1].set(p["r"] * qds[:, 4] * jnp.sin(qs[:, 2])))
+    rolling_qd = (
+        qds.at[:, 0].set(p["r"] * qds[:, 4] * jnp.cos(qs[:, 2])).at[:, 1].set(p["r"] * qds[:, 4] * jnp.sin(qs[:, 2]))
+    )
     slip = jax.vmap(lambda q, qd: D.WHEEL.slip(q, qd, 0.0, p))(qs, rolling_qd)
     np.testing.assert_allclose(slip, 0.0, atol=1e-14)
     # sliding sideways is slip

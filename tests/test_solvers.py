@@ -121,9 +121,15 @@ def fixed_solve_lin():
     @jax.jit
     def solve(dt):
         sol = diffrax.diffeqsolve(
-            term, DOP853(), 0.0, 4.0, dt, LIN_Y0,
+            term,
+            DOP853(),
+            0.0,
+            4.0,
+            dt,
+            LIN_Y0,
             saveat=diffrax.SaveAt(ts=ts, dense=True),  # ts[-1] == t1
-            stepsize_controller=diffrax.ConstantStepSize(), max_steps=64,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=64,
         )
         return sol.ys, jax.vmap(sol.evaluate)(ts)
 
@@ -137,8 +143,14 @@ def fixed_solve_rot():
     @jax.jit
     def solve(dt):
         sol = diffrax.diffeqsolve(
-            term, DOP853(), 0.0, 3.0, dt, rot_exact(0.0),
-            stepsize_controller=diffrax.ConstantStepSize(), max_steps=64,
+            term,
+            DOP853(),
+            0.0,
+            3.0,
+            dt,
+            rot_exact(0.0),
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=64,
         )
         return jax.tree_util.tree_map(lambda a: a[-1], sol.ys)
 
@@ -194,8 +206,7 @@ def single_steps():
     y1, err, ymid, ends = one(hs)
     exact1 = jax.vmap(lambda h: lin_exact(t0 + h, t0, LIN_Y0))(hs)
     exactm = jax.vmap(lambda h: lin_exact(t0 + theta * h, t0, LIN_Y0))(hs)
-    return dict(hs=np.asarray(hs), y1=y1, err=err, ymid=ymid, ends=ends,
-                exact1=exact1, exactm=exactm)
+    return dict(hs=np.asarray(hs), y1=y1, err=err, ymid=ymid, ends=ends, exact1=exact1, exactm=exactm)
 
 
 def test_local_error_order(single_steps):
@@ -250,7 +261,13 @@ def test_agrees_with_dopri8_tight_tolerance():
 
     def run(solver):
         return diffrax.diffeqsolve(
-            term, solver, 0.0, 10.0, None, LV_Y0, saveat=diffrax.SaveAt(ts=ts),
+            term,
+            solver,
+            0.0,
+            10.0,
+            None,
+            LV_Y0,
+            saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13),
             max_steps=20000,
         ).ys
@@ -273,7 +290,12 @@ def test_adaptive_solve_meets_tolerance():
     @jax.jit
     def run(tol):
         sol = diffrax.diffeqsolve(
-            term, DOP853(), 0.0, t1, None, LIN_Y0,
+            term,
+            DOP853(),
+            0.0,
+            t1,
+            None,
+            LIN_Y0,
             stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
             max_steps=4096,
         )
@@ -302,10 +324,17 @@ def pendulum_loss():
     def loss(p, adjoint=diffrax.RecursiveCheckpointAdjoint()):
         g, th0 = p[0], p[1]
         sol = diffrax.diffeqsolve(
-            term, DOP853(), 0.0, 3.0, None, y0.at[0].set(th0), args=g,
+            term,
+            DOP853(),
+            0.0,
+            3.0,
+            None,
+            y0.at[0].set(th0),
+            args=g,
             saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11),
-            max_steps=2048, adjoint=adjoint,
+            max_steps=2048,
+            adjoint=adjoint,
         )
         ys = saved(sol)
         return jnp.sum(ys[:, 0] ** 2) + jnp.sum(jnp.sin(ys[:, 1]))
@@ -341,11 +370,19 @@ def test_vmap_matches_individual_solves():
     term = diffrax.ODETerm(pend_vf)
 
     def solve(y0):
-        return saved(diffrax.diffeqsolve(
-            term, DOP853(), 0.0, 5.0, None, y0, args=1.0,
-            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
-            throw=False,
-        ))[-1]
+        return saved(
+            diffrax.diffeqsolve(
+                term,
+                DOP853(),
+                0.0,
+                5.0,
+                None,
+                y0,
+                args=1.0,
+                stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+                throw=False,
+            )
+        )[-1]
 
     y0s = jnp.stack([jnp.array([a, 0.1 * a]) for a in (0.1, 0.5, 1.0, 2.0, 3.0)])
     batched = jax.jit(jax.vmap(solve))(y0s)
@@ -361,7 +398,12 @@ def test_float32():
     y0 = LIN_Y0.astype(jnp.float32)
     sol = jax.jit(
         lambda y: diffrax.diffeqsolve(
-            term, DOP853(), jnp.float32(0.0), jnp.float32(4.0), None, y,
+            term,
+            DOP853(),
+            jnp.float32(0.0),
+            jnp.float32(4.0),
+            None,
+            y,
             stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
             saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 4.0, 9, dtype=jnp.float32)),
         )
@@ -376,8 +418,8 @@ def test_jump_invalidates_fsal_stage():
     re-evaluate the first stage, otherwise the step after the jump is wrong."""
     term = diffrax.ODETerm(lambda t, y, args: jnp.where(t < 1.0, 1.0, -1.0) * jnp.ones_like(y))
     ctrl = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=1e-8, atol=1e-8), jump_ts=jnp.array([1.0]))
-    solve = jax.jit(jax.vmap(
-        lambda y0: saved(diffrax.diffeqsolve(term, DOP853(), 0.0, 2.0, 0.3, y0, stepsize_controller=ctrl))[-1]
-    ))
+    solve = jax.jit(
+        jax.vmap(lambda y0: saved(diffrax.diffeqsolve(term, DOP853(), 0.0, 2.0, 0.3, y0, stepsize_controller=ctrl))[-1])
+    )
     y0s = jnp.array([[0.0], [1.0]])
     np.testing.assert_allclose(solve(y0s), y0s, atol=1e-12)  # up 1, then down 1

@@ -253,8 +253,9 @@ def test_gradient_through_stabilisation(stabilization):
     the two must agree to rounding, not only to the tolerance."""
     J2, h = 0.05, 1e-4
     g = float(jax.grad(final_speed)(J2, stabilization=stabilization))
-    fd = float((final_speed(J2 + h, stabilization=stabilization) - final_speed(J2 - h, stabilization=stabilization))
-               / (2 * h))
+    fd = float(
+        (final_speed(J2 + h, stabilization=stabilization) - final_speed(J2 - h, stabilization=stabilization)) / (2 * h)
+    )
     exact = float(jax.grad(exact_final_speed)(J2))
     print(f"{stabilization}: grad {g:.10g}, finite differences {fd:.10g}, closed form {exact:.10g}")
     # FD: truncation (h/J2)² ≈ 4e-6 relative, plus step-sequence noise ≈ rtol/h·|phi1'| ≈ 1e-4 rad/s
@@ -263,10 +264,12 @@ def test_gradient_through_stabilisation(stabilization):
     np.testing.assert_allclose(g, exact, rtol=1e-5)
     if stabilization == "projection":
         # the same steps (no sensitivity error control): the derivative of the same discrete solution
-        same = float(jax.grad(final_speed)(J2, stabilization="projection",
-                                           adjoint=nh.ForwardSensitivity(error_control=False)))
-        g_rev = float(jax.grad(final_speed)(J2, stabilization="projection",
-                                            adjoint=diffrax.RecursiveCheckpointAdjoint()))
+        same = float(
+            jax.grad(final_speed)(J2, stabilization="projection", adjoint=nh.ForwardSensitivity(error_control=False))
+        )
+        g_rev = float(
+            jax.grad(final_speed)(J2, stabilization="projection", adjoint=diffrax.RecursiveCheckpointAdjoint())
+        )
         np.testing.assert_allclose(same, g_rev, rtol=1e-9)
 
 
@@ -369,12 +372,17 @@ DAMPED_T = 4.0
 def damped_params(rate):
     """Damping c_i = rate·J_i: the motion relaxes at ≈ `rate` 1/s onto a slow forced state."""
     U = Ratio(1.0, a1=0.4, omega=np.pi)
-    return params(U=U, M1=Torque(0.3, tau=0.2 / np.sqrt(0.02 + 0.05), omega=2 * np.pi / 1.3, J1=0.02, J2=0.05, U=U),
-                  M2=-0.1, damping=(rate * 0.02, rate * 0.05))
+    return params(
+        U=U,
+        M1=Torque(0.3, tau=0.2 / np.sqrt(0.02 + 0.05), omega=2 * np.pi / 1.3, J1=0.02, J2=0.05, U=U),
+        M2=-0.1,
+        damping=(rate * 0.02, rate * 0.05),
+    )
 
 
 def damped_reference(rate, ts):
     """Eq. (9) with damping, written out by hand, by SciPy's Radau (independent of jaxnh)."""
+
     def rhs(t, y):
         U = 1 + 0.4 * np.sin(np.pi * t)
         dU = 0.4 * np.pi * np.cos(np.pi * t)
@@ -383,8 +391,9 @@ def damped_reference(rate, ts):
         w = y[0]
         return [(M1 - 0.1 * U - rate * (0.02 + 0.05 * U**2) * w - 0.05 * U * dU * w) / I, w, U * w]
 
-    return solve_ivp(rhs, (0.0, ts[-1]), [W0, 0.0, 0.0], method="Radau", rtol=1e-11, atol=1e-13,
-                     t_eval=np.asarray(ts)).y
+    return solve_ivp(
+        rhs, (0.0, ts[-1]), [W0, 0.0, 0.0], method="Radau", rtol=1e-11, atol=1e-13, t_eval=np.asarray(ts)
+    ).y
 
 
 @pytest.fixture(scope="module")
@@ -415,8 +424,9 @@ def test_stiff_damping_implicit_solver(stiff):
     """
     p, ts, ref = stiff
     rtol, atol = 1e-10, 1e-12
-    sol = run(p, ts, "lagrange", solver=diffrax.Kvaerno5(root_finder=optx.Newton(rtol=rtol, atol=atol)), rtol=rtol,
-              atol=atol)
+    sol = run(
+        p, ts, "lagrange", solver=diffrax.Kvaerno5(root_finder=optx.Newton(rtol=rtol, atol=atol)), rtol=rtol, atol=atol
+    )
     assert bool(sol.success), sol.message
     steps = int(sol.stats["num_steps"])
     slow = np.max(np.abs(ref[0][5:]))  # the forced motion after the initial transient (≈ 5e-5 rad/s)
@@ -508,8 +518,9 @@ def test_redundant_constraints():
     p = long_params()
     ts = jnp.linspace(0.0, 3.0, N_REPORT)
     qd0 = jnp.array([W0, W0 * float(p["v"].U21(0.0))])
-    sol = nh.simulate(MECH_REDUNDANT, p, jnp.zeros(2), qd0, ts, method="lagrange", throw=False,
-                      record=("multipliers", "residual"))
+    sol = nh.simulate(
+        MECH_REDUNDANT, p, jnp.zeros(2), qd0, ts, method="lagrange", throw=False, record=("multipliers", "residual")
+    )
     assert bool(sol.success), sol.message
     single = run(p, ts, "lagrange")
     # the same motion, step for step, as with the constraint once (measured difference 4e-15)
@@ -538,8 +549,9 @@ def test_non_finite_parameter_in_a_batch():
 
     def one(J2):
         p = params(J2=J2)
-        sol = nh.simulate(MECH, p, jnp.zeros(2), jnp.array([W0, W0]), ts, record=RECORD,
-                          max_steps=MAX_STEPS, throw=False)
+        sol = nh.simulate(
+            MECH, p, jnp.zeros(2), jnp.array([W0, W0]), ts, record=RECORD, max_steps=MAX_STEPS, throw=False
+        )
         assert sol.energy is not None
         return sol.q, sol.energy, sol.status
 
@@ -588,8 +600,9 @@ def test_mass_matrix_becoming_singular_during_the_run():
 def test_overflow_is_not_a_success():
     """Speeds of 1e160 rad/s integrate, but T = ½ J w² overflows to inf: a failed status."""
     ts = jnp.linspace(0.0, 1.0, N_REPORT)
-    sol = nh.simulate(MECH, params(), jnp.zeros(2), jnp.array([1e160, 1e160]), ts, record=RECORD,
-                      max_steps=MAX_STEPS, throw=False)
+    sol = nh.simulate(
+        MECH, params(), jnp.zeros(2), jnp.array([1e160, 1e160]), ts, record=RECORD, max_steps=MAX_STEPS, throw=False
+    )
     finite = all(np.all(np.isfinite(np.asarray(x))) for x in (sol.q, sol.qd, sol.energy, sol.residual))
     assert not finite  # the overflow happens …
     assert sol.status == nh.STATUS.non_finite_output  # … and is reported

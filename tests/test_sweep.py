@@ -233,8 +233,13 @@ def test_two_processes_two_devices_each(tmp_path):
     script.write_text(MULTI_PROCESS_SCRIPT)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
     procs = [
-        subprocess.Popen([sys.executable, str(script), str(i), str(port), str(tmp_path / f"r{i}.npz")], env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        subprocess.Popen(
+            [sys.executable, str(script), str(i), str(port), str(tmp_path / f"r{i}.npz")],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         for i in range(2)
     ]
     for p in procs:

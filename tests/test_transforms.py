@@ -69,13 +69,17 @@ def cos_ratio(q, qd, t, p):
     return jnp.stack([1.5 * jnp.cos(t) * qd[0] - qd[1]])
 
 
-COS = nh.Mechanism(lambda q, qd, t, p: 0.5 * (0.02 * qd[0] ** 2 + 0.05 * qd[1] ** 2), constraints=cos_ratio,
-                   forces=lambda q, qd, t, p: jnp.stack([0.1, 0.0 * q[0]]))
+COS = nh.Mechanism(
+    lambda q, qd, t, p: 0.5 * (0.02 * qd[0] ** 2 + 0.05 * qd[1] ** 2),
+    constraints=cos_ratio,
+    forces=lambda q, qd, t, p: jnp.stack([0.1, 0.0 * q[0]]),
+)
 
 
 @pytest.fixture(scope="module")
 def cos_runs():
     ts = jnp.array([0.0, 2 * jnp.pi])
+
     def run(qd0, method):
         return nh.simulate(COS, {}, jnp.zeros(2), qd0, ts, method, rtol=1e-10, atol=1e-12)
 
@@ -83,8 +87,9 @@ def cos_runs():
     out: dict[str, Any] = {m: [run(x, m) for x in qd0] for m in ("appell", "lagrange")}
     out["jit"] = jax.jit(lambda x: run(x, "appell").q)(qd0[0])
     out["vmap"] = jax.vmap(lambda x: run(x, "appell").q)(qd0)
-    out["fixed"] = nh.simulate(COS, {}, jnp.zeros(2), qd0[0], ts, "appell", independent=(1,), throw=False,
-                               rtol=1e-10, atol=1e-12)
+    out["fixed"] = nh.simulate(
+        COS, {}, jnp.zeros(2), qd0[0], ts, "appell", independent=(1,), throw=False, rtol=1e-10, atol=1e-12
+    )
     return out
 
 
@@ -233,8 +238,16 @@ def test_nan_parameter_gives_nan_gradient_not_zero():
 
 def test_failed_solve_gives_nan_gradient_in_reverse_mode():
     def f(j):
-        sol = nh.simulate(MECH, {**P, "J1": j}, jnp.zeros(2), QD0, TS, throw=False, max_steps=3,
-                          adjoint=diffrax.RecursiveCheckpointAdjoint())
+        sol = nh.simulate(
+            MECH,
+            {**P, "J1": j},
+            jnp.zeros(2),
+            QD0,
+            TS,
+            throw=False,
+            max_steps=3,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        )
         return jnp.sum(sol.q[:2])
 
     assert bool(jnp.isnan(jax.grad(f)(0.02)))
@@ -247,8 +260,17 @@ def test_event_time_is_a_root_of_the_dense_output():
     """Stop when phi1 reaches 3 rad; the event time solves phi1(t) = 3 on the dense output."""
     target = 3.0
     event = diffrax.Event(lambda t, y, p, **kw: y[0][0] - target, root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
-    sol = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS, event=event, rtol=1e-10, atol=1e-12,
-                      saveat=diffrax.SaveAt(ts=TS, t1=True, dense=True))
+    sol = nh.simulate(
+        MECH,
+        P,
+        jnp.zeros(2),
+        QD0,
+        TS,
+        event=event,
+        rtol=1e-10,
+        atol=1e-12,
+        saveat=diffrax.SaveAt(ts=TS, t1=True, dense=True),
+    )
     # diffrax writes the t1 entry after the last report time reached; the later ones are inf
     t_event = jnp.max(jnp.where(jnp.isfinite(sol.ts), sol.ts, -jnp.inf))
     assert 0.0 < float(t_event) < float(TS[-1]) and bool(sol.event_mask)
@@ -262,9 +284,17 @@ def test_event_time_is_a_root_of_the_dense_output():
 
 def test_ode_with_diffeqsolve_equals_simulate():
     o = nh.ode(MECH, P, jnp.zeros(2), QD0, 0.0)
-    sol = diffrax.diffeqsolve(o.term, o.solver(diffrax.Tsit5()), 0.0, float(TS[-1]), None, o.y0, args=o.args,
-                              saveat=diffrax.SaveAt(ts=TS),
-                              stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12, norm=o.error_norm))
+    sol = diffrax.diffeqsolve(
+        o.term,
+        o.solver(diffrax.Tsit5()),
+        0.0,
+        float(TS[-1]),
+        None,
+        o.y0,
+        args=o.args,
+        saveat=diffrax.SaveAt(ts=TS),
+        stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-12, norm=o.error_norm),
+    )
     q, qd = jax.vmap(o.unpack)(sol.ys, sol.ts)
     ref = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS, rtol=1e-10, atol=1e-12, solver=diffrax.Tsit5())
     np.testing.assert_allclose(q, ref.q, atol=1e-12)
@@ -279,8 +309,11 @@ def test_holonomic_constraint_in_mechanism():
     small oscillations 2π/√(g/L); the holonomic constraint stays satisfied to the tolerance,
     Appell equals Lagrange."""
     grav = 9.81
-    mech = nh.Mechanism(lambda q, qd, t, p: 0.5 * jnp.sum(qd**2), potential=lambda q, t, p: grav * q[1],
-                        holonomic=lambda q, t, p: jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0]))
+    mech = nh.Mechanism(
+        lambda q, qd, t, p: 0.5 * jnp.sum(qd**2),
+        potential=lambda q, t, p: grav * q[1],
+        holonomic=lambda q, t, p: jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0]),
+    )
     th0 = 0.01
     q0 = jnp.array([jnp.sin(th0), -jnp.cos(th0)])
     period = 2 * jnp.pi / jnp.sqrt(grav)

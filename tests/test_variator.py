@@ -83,9 +83,11 @@ TS = jnp.linspace(0.0, 10.0, 201)
 def driven():
     """Non-trivial U21(t) (two harmonics) and non-zero time-varying torques."""
     p = V.VariatorParams(
-        J1=0.02, J2=0.05,
+        J1=0.02,
+        J2=0.05,
         U21=Fourier(1.1, cos=[0.2, 0.05], sin=[0.3], period=2.0),
-        M1=Fourier(0.3, sin=[0.1], period=5.0), M2=-0.1,
+        M1=Fourier(0.3, sin=[0.1], period=5.0),
+        M2=-0.1,
     )
     return p, V.closed_form(p, TS, w0=W0)
 
@@ -94,8 +96,17 @@ def driven():
 def test_simulation_matches_closed_form(driven, method):
     p, (q_ref, qd_ref) = driven
     qd0 = jnp.array([W0, p.U21(0.0) * W0])
-    sol = nh.simulate(V.mechanism(), p, jnp.zeros(2), qd0, TS, method=method, rtol=1e-12, atol=1e-12,
-                      solver=__import__("diffrax").Dopri8())
+    sol = nh.simulate(
+        V.mechanism(),
+        p,
+        jnp.zeros(2),
+        qd0,
+        TS,
+        method=method,
+        rtol=1e-12,
+        atol=1e-12,
+        solver=__import__("diffrax").Dopri8(),
+    )
     assert bool(sol.success)
     err = max(np.max(np.abs(sol.q - q_ref)), np.max(np.abs(sol.qd - qd_ref)))
     print(f"{method}: max error vs closed form {err:.2e}, steps {int(sol.stats['num_steps'])}")
@@ -122,8 +133,18 @@ def free_runs():
     qd0 = jnp.array([W0, p.U21(0.0) * W0])
     out = {}
     for method in ("lagrange", "appell", "substituted"):
-        sol = nh.simulate(V.mechanism(), p, jnp.zeros(2), qd0, ts, method=method, rtol=1e-12, atol=1e-12,
-                          record=("energy",), solver=__import__("diffrax").Dopri8())
+        sol = nh.simulate(
+            V.mechanism(),
+            p,
+            jnp.zeros(2),
+            qd0,
+            ts,
+            method=method,
+            rtol=1e-12,
+            atol=1e-12,
+            record=("energy",),
+            solver=__import__("diffrax").Dopri8(),
+        )
         out[method] = sol
     return out
 

@@ -23,8 +23,16 @@ from .substituted import Substituted
 METHODS = ("lagrange", "appell", "substituted")
 
 __all__ = [
-    "Appell", "Formulation", "Lagrange", "Substituted", "VelocitySplit",
-    "METHODS", "accelerations", "choose_independent", "formulation", "as_formulation",
+    "Appell",
+    "Formulation",
+    "Lagrange",
+    "Substituted",
+    "VelocitySplit",
+    "METHODS",
+    "accelerations",
+    "choose_independent",
+    "formulation",
+    "as_formulation",
     "multipliers_from_accelerations",
 ]
 

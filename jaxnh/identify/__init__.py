@@ -22,16 +22,16 @@
 
 from . import variator
 from ._experiment import (
-                          ChannelNoise,
-                          DesignResult,
-                          encoder_noise,
-                          Experiment,
-                          experiment,
-                          Limits,
-                          optimal_design,
-                          predict,
-                          Prediction,
-                          variator_experiment,
+    ChannelNoise,
+    DesignResult,
+    encoder_noise,
+    Experiment,
+    experiment,
+    Limits,
+    optimal_design,
+    predict,
+    Prediction,
+    variator_experiment,
 )
 from ._fit import fit, FitResult, prepare
 from .data import load_default, MIN_SAMPLES, noise_level, read_csv, Record, write_csv
@@ -40,8 +40,30 @@ from .problem import Observations, Problem, solve_least_squares, statistics, val
 
 
 __all__ = [
-    "fit", "FitResult", "prepare", "Record", "read_csv", "write_csv", "load_default", "noise_level",
-    "MIN_SAMPLES", "Identifiability", "Observations", "Problem", "solve_least_squares", "statistics",
-    "value_and_jacobian", "variator", "experiment", "Experiment", "predict", "Prediction", "optimal_design",
-    "DesignResult", "Limits", "ChannelNoise", "encoder_noise", "variator_experiment",
+    "fit",
+    "FitResult",
+    "prepare",
+    "Record",
+    "read_csv",
+    "write_csv",
+    "load_default",
+    "noise_level",
+    "MIN_SAMPLES",
+    "Identifiability",
+    "Observations",
+    "Problem",
+    "solve_least_squares",
+    "statistics",
+    "value_and_jacobian",
+    "variator",
+    "experiment",
+    "Experiment",
+    "predict",
+    "Prediction",
+    "optimal_design",
+    "DesignResult",
+    "Limits",
+    "ChannelNoise",
+    "encoder_noise",
+    "variator_experiment",
 ]

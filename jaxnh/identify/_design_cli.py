@@ -49,34 +49,70 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="jaxnh design",
         description="Design the motor (and load) torque of a variator identification experiment before "
-                    "measuring: minimise the predicted standard error of the named parameters (Fisher "
-                    "information from forward sensitivities) within the rig's torque, contact-force and "
-                    "energy limits. Default set-up: the embedded record's.")
-    p.add_argument("--out", default="jaxnh_design", metavar="DIR",
-                   help="folder for designed_input.csv, design.json, design.png (default jaxnh_design)")
-    p.add_argument("--criterion", choices=("A", "D"), default="A",
-                   help="A: log of the summed relative variances of --of (default); D: log det of their covariance")
-    p.add_argument("--of", nargs="+", default=["J1"], metavar="NAME",
-                   help="parameters whose precision to optimise: J1, J2, U21 (all knots) or U21[k] (default J1)")
-    p.add_argument("--inputs", nargs="+", default=["M1", "M2"], choices=("M1", "M2"),
-                   help="torques to design (default both; one not designed keeps the record's)")
-    p.add_argument("--harmonics", type=int, default=12,
-                   help="Fourier harmonics of each designed torque over the duration (default 12: up to 2 Hz)")
+        "measuring: minimise the predicted standard error of the named parameters (Fisher "
+        "information from forward sensitivities) within the rig's torque, contact-force and "
+        "energy limits. Default set-up: the embedded record's.",
+    )
+    p.add_argument(
+        "--out",
+        default="jaxnh_design",
+        metavar="DIR",
+        help="folder for designed_input.csv, design.json, design.png (default jaxnh_design)",
+    )
+    p.add_argument(
+        "--criterion",
+        choices=("A", "D"),
+        default="A",
+        help="A: log of the summed relative variances of --of (default); D: log det of their covariance",
+    )
+    p.add_argument(
+        "--of",
+        nargs="+",
+        default=["J1"],
+        metavar="NAME",
+        help="parameters whose precision to optimise: J1, J2, U21 (all knots) or U21[k] (default J1)",
+    )
+    p.add_argument(
+        "--inputs",
+        nargs="+",
+        default=["M1", "M2"],
+        choices=("M1", "M2"),
+        help="torques to design (default both; one not designed keeps the record's)",
+    )
+    p.add_argument(
+        "--harmonics",
+        type=int,
+        default=12,
+        help="Fourier harmonics of each designed torque over the duration (default 12: up to 2 Hz)",
+    )
     p.add_argument("--starts", type=int, default=3, help="optimisation starts; the best feasible is kept (default 3)")
     p.add_argument("--steps", type=int, default=400, help="Adam steps per start (default 400)")
     p.add_argument("--learning-rate", type=float, default=0.1, help="Adam step size (default 0.1)")
-    p.add_argument("--m1-max", type=float, default=None,
-                   help="bound on |M1|, N·m (default: the embedded record's largest |M1|)")
-    p.add_argument("--m2-max", type=float, default=None,
-                   help="bound on |M2| when designed, N·m (default: the embedded record's largest |M2|)")
-    p.add_argument("--lambda-max", type=float, default=None,
-                   help="contact-force limit |λ| (tangential force × roller radius), N·m (default: the largest "
-                        "|λ| along the embedded experiment)")
-    p.add_argument("--energy-max", type=float, default=None,
-                   help="energy the drives may deliver, J (default: no limit)")
+    p.add_argument(
+        "--m1-max", type=float, default=None, help="bound on |M1|, N·m (default: the embedded record's largest |M1|)"
+    )
+    p.add_argument(
+        "--m2-max",
+        type=float,
+        default=None,
+        help="bound on |M2| when designed, N·m (default: the embedded record's largest |M2|)",
+    )
+    p.add_argument(
+        "--lambda-max",
+        type=float,
+        default=None,
+        help="contact-force limit |λ| (tangential force × roller radius), N·m (default: the largest "
+        "|λ| along the embedded experiment)",
+    )
+    p.add_argument(
+        "--energy-max", type=float, default=None, help="energy the drives may deliver, J (default: no limit)"
+    )
     p.add_argument("--power-max", type=float, default=None, help="peak drive power, W (default: no limit)")
-    p.add_argument("--no-keep", action="store_true",
-                   help="do not require J2 and the U21 knots to stay at least as precise as with the record's input")
+    p.add_argument(
+        "--no-keep",
+        action="store_true",
+        help="do not require J2 and the U21 knots to stay at least as precise as with the record's input",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     return p
@@ -177,9 +213,12 @@ def _run(args, files) -> int:
     duration = float(t[-1] - t[0])
     m1_max = args.m1_max or float(np.max(np.abs(record.inputs["M1"])))
     m2_max = args.m2_max or float(np.max(np.abs(record.inputs["M2"])))
-    _say(args, "jaxnh design — variator, embedded record's set-up: "
-         f"{record.n} samples over {duration:.3g} s, encoders {truth['counts_per_rev']} counts/rev, "
-         f"nominal J1 = {truth['J1']}, J2 = {truth['J2']} kg·m², U21 on {len(truth['U21_knots'])} knots")
+    _say(
+        args,
+        "jaxnh design — variator, embedded record's set-up: "
+        f"{record.n} samples over {duration:.3g} s, encoders {truth['counts_per_rev']} counts/rev, "
+        f"nominal J1 = {truth['J1']}, J2 = {truth['J2']} kg·m², U21 on {len(truth['U21_knots'])} knots",
+    )
     exp, base_params = variator_experiment(record)
     _say(args, "  baseline (the record's torques): predicting standard errors …")
     base = predict(exp)
@@ -192,8 +231,11 @@ def _run(args, files) -> int:
     keep = None
     if not args.no_keep:
         rel = base.std[:P] / base.values[:P]  # θ units: relative for the (positive) parameters
-        keep = {lab: float(r) for lab, r in zip(exp.labels[:P], rel) if lab.split("[")[0] not in args.of
-                and lab not in args.of}
+        keep = {
+            lab: float(r)
+            for lab, r in zip(exp.labels[:P], rel)
+            if lab.split("[")[0] not in args.of and lab not in args.of
+        }
     limits = Limits(multiplier=lam_max, energy=args.energy_max, power=args.power_max, std=keep or None)
     K = args.harmonics
     rng = np.random.default_rng(args.seed)
@@ -202,19 +244,38 @@ def _run(args, files) -> int:
         # start near the record's mean torque with small random harmonics (a constant law is a degenerate
         # start: see jaxnh.design); the other starts add Gaussian noise of 0.3 to every coefficient
         inner_mean = float(Bounded.inverse(np.clip(mean, -0.9 * bound, 0.9 * bound), -bound, bound))
-        return Bounded(Fourier(inner_mean, cos=0.3 * rng.standard_normal(K), sin=0.3 * rng.standard_normal(K),
-                               period=duration), -bound, bound)
+        return Bounded(
+            Fourier(inner_mean, cos=0.3 * rng.standard_normal(K), sin=0.3 * rng.standard_normal(K), period=duration),
+            -bound,
+            bound,
+        )
 
     M1 = law(m1_max, np.mean(record.inputs["M1"])) if "M1" in args.inputs else base_params.M1
     M2 = law(m2_max, np.mean(record.inputs["M2"])) if "M2" in args.inputs else base_params.M2
     start = V.VariatorParams(base_params.J1, base_params.J2, base_params.U21, M1, M2)
-    _say(args, f"  designing {', '.join(args.inputs)}: {args.criterion}-criterion on {', '.join(args.of)}; "
-         f"|M1| ≤ {m1_max:.4g} N·m" + (f", |M2| ≤ {m2_max:.4g} N·m" if "M2" in args.inputs else "")
-         + f", |λ| ≤ {lam_max:.4g} N·m" + (", J2 and U21 knots no worse than the baseline" if keep else "")
-         + f"; {args.starts} starts × {args.steps} Adam steps (the first call compiles)")
-    res = optimal_design(exp, start, args.inputs, args.criterion, of=args.of, limits=limits, starts=args.starts,
-                         steps=args.steps, learning_rate=args.learning_rate, spread=0.3, seed=args.seed,
-                         progress=not args.quiet)
+    _say(
+        args,
+        f"  designing {', '.join(args.inputs)}: {args.criterion}-criterion on {', '.join(args.of)}; "
+        f"|M1| ≤ {m1_max:.4g} N·m"
+        + (f", |M2| ≤ {m2_max:.4g} N·m" if "M2" in args.inputs else "")
+        + f", |λ| ≤ {lam_max:.4g} N·m"
+        + (", J2 and U21 knots no worse than the baseline" if keep else "")
+        + f"; {args.starts} starts × {args.steps} Adam steps (the first call compiles)",
+    )
+    res = optimal_design(
+        exp,
+        start,
+        args.inputs,
+        args.criterion,
+        of=args.of,
+        limits=limits,
+        starts=args.starts,
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        spread=0.3,
+        seed=args.seed,
+        progress=not args.quiet,
+    )
     # what a fit will see: the designed torques sampled at the record's times (cubic spline between samples)
     tj = jnp.asarray(t)
     m1 = np.asarray(jax.vmap(res.params.M1)(tj))
@@ -226,51 +287,84 @@ def _run(args, files) -> int:
     from ._experiment import evaluate_design
 
     check = evaluate_design(loss, sampled)
-    feasible = check["status"] == 0 and all(check[k] <= 1.0 for k in ("multiplier", "energy", "power", "std")
-                                            if k in check)
+    feasible = check["status"] == 0 and all(
+        check[k] <= 1.0 for k in ("multiplier", "energy", "power", "std") if k in check
+    )
     ratio = {lab: _num(b / d) for lab, b, d in zip(exp.labels, base.std, des.std)}
     ts_band = np.linspace(t[0], t[-1], 241)
     u_b, s_b = base.profile_band("U21", ts_band)
     u_d, s_d = des.profile_band("U21", ts_band)
     out = {
         "model": "variator",
-        "setup": {"record": "embedded (jaxnh/data/variator_record.csv)", "samples": int(record.n),
-                  "duration_s": duration, "counts_per_rev": truth["counts_per_rev"],
-                  "jitter_std_rad": truth["jitter_std"],
-                  "noise_std_rad": {c: float(s) for c, s in zip(("phi1", "phi2"), np.asarray(exp.sigma))},
-                  "nominal": {"J1": truth["J1"], "J2": truth["J2"], "U21_knots": truth["U21_knots"],
-                              "U21_values": truth["U21_values"], "phi0": truth["phi0"], "w0": truth["w0"]},
-                  "unknowns": list(exp.labels)},
-        "design": {"inputs": list(args.inputs), "criterion": args.criterion, "of": list(args.of),
-                   "law": f"Bounded(Fourier, {K} harmonics of period {duration:g} s)",
-                   "limits": {"M1_abs_max": m1_max, "M2_abs_max": m2_max if "M2" in args.inputs else None,
-                              "lambda_abs_max": lam_max,
-                              "lambda_source": "given" if args.lambda_max else
-                              "largest |λ| along the embedded experiment",
-                              "energy_max": args.energy_max, "power_max": args.power_max,
-                              "keep_no_worse": sorted(keep) if keep else []},
-                   "starts": [{"value": _num(s["value"]), "feasible": s["feasible"],
-                               "violations": {k: _num(v) for k, v in s["violations"].items()}}
-                              for s in res.starts],
-                   "best_start": res.best_start, "seed": args.seed, "steps": args.steps},
-        "check": {"feasible": bool(feasible),
-                  "max_abs_lambda": _num(des.max_multiplier[0]),
-                  "ratio_to_limits": {k: _num(check[k]) for k in ("multiplier", "energy", "power", "std")
-                                      if k in check},
-                  "max_abs_M1": float(np.max(np.abs(m1))), "max_abs_M2": float(np.max(np.abs(m2))),
-                  "note": "predicted with the torques as written to the CSV (sampled, cubic spline between "
-                          "samples), as a fit of the measured record will see them"},
+        "setup": {
+            "record": "embedded (jaxnh/data/variator_record.csv)",
+            "samples": int(record.n),
+            "duration_s": duration,
+            "counts_per_rev": truth["counts_per_rev"],
+            "jitter_std_rad": truth["jitter_std"],
+            "noise_std_rad": {c: float(s) for c, s in zip(("phi1", "phi2"), np.asarray(exp.sigma))},
+            "nominal": {
+                "J1": truth["J1"],
+                "J2": truth["J2"],
+                "U21_knots": truth["U21_knots"],
+                "U21_values": truth["U21_values"],
+                "phi0": truth["phi0"],
+                "w0": truth["w0"],
+            },
+            "unknowns": list(exp.labels),
+        },
+        "design": {
+            "inputs": list(args.inputs),
+            "criterion": args.criterion,
+            "of": list(args.of),
+            "law": f"Bounded(Fourier, {K} harmonics of period {duration:g} s)",
+            "limits": {
+                "M1_abs_max": m1_max,
+                "M2_abs_max": m2_max if "M2" in args.inputs else None,
+                "lambda_abs_max": lam_max,
+                "lambda_source": "given" if args.lambda_max else "largest |λ| along the embedded experiment",
+                "energy_max": args.energy_max,
+                "power_max": args.power_max,
+                "keep_no_worse": sorted(keep) if keep else [],
+            },
+            "starts": [
+                {
+                    "value": _num(s["value"]),
+                    "feasible": s["feasible"],
+                    "violations": {k: _num(v) for k, v in s["violations"].items()},
+                }
+                for s in res.starts
+            ],
+            "best_start": res.best_start,
+            "seed": args.seed,
+            "steps": args.steps,
+        },
+        "check": {
+            "feasible": bool(feasible),
+            "max_abs_lambda": _num(des.max_multiplier[0]),
+            "ratio_to_limits": {k: _num(check[k]) for k in ("multiplier", "energy", "power", "std") if k in check},
+            "max_abs_M1": float(np.max(np.abs(m1))),
+            "max_abs_M2": float(np.max(np.abs(m2))),
+            "note": "predicted with the torques as written to the CSV (sampled, cubic spline between "
+            "samples), as a fit of the measured record will see them",
+        },
         "baseline": base.to_dict(),
         "designed": des.to_dict(),
         "std_ratio_baseline_over_designed": ratio,
-        "U21_band": {"t": ts_band.tolist(), "baseline_half_width_95": (Z95 * s_b).tolist(),
-                     "designed_half_width_95": (Z95 * s_d).tolist(), "value": u_b.tolist()},
+        "U21_band": {
+            "t": ts_band.tolist(),
+            "baseline_half_width_95": (Z95 * s_b).tolist(),
+            "designed_half_width_95": (Z95 * s_d).tolist(),
+            "value": u_b.tolist(),
+        },
         "units": {"J1": "kg m^2", "J2": "kg m^2", "U21": "1", "M1": "N m", "M2": "N m", "lambda": "N m", "t": "s"},
         "elapsed_s": time.perf_counter() - started,
     }
-    header = ("# jaxnh design: designed input for the variator identification experiment (jaxnh design)\n"
-              f"# t [s], M1 [N m] motor torque, M2 [N m] load torque; {record.n} samples over {duration:g} s; "
-              f"feasible={bool(feasible)}\n")
+    header = (
+        "# jaxnh design: designed input for the variator identification experiment (jaxnh design)\n"
+        f"# t [s], M1 [N m] motor torque, M2 [N m] load torque; {record.n} samples over {duration:g} s; "
+        f"feasible={bool(feasible)}\n"
+    )
 
     def write_csv(path):
         with open(path, "w") as f:
@@ -284,13 +378,17 @@ def _run(args, files) -> int:
 
     _atomic_write(files["csv"], write_csv)
     _atomic_write(files["json"], write_json)
-    _atomic_write(files["figure"], lambda p: _figure(p, exp, base_params, sampled, base, des, ts_band,
-                                                      s_b, s_d, lam_max))
+    _atomic_write(
+        files["figure"], lambda p: _figure(p, exp, base_params, sampled, base, des, ts_band, s_b, s_d, lam_max)
+    )
     _say(args, "")
     _say(args, _table(exp.labels, base, des))
-    _say(args, f"  contact force: max |λ| {out['check']['max_abs_lambda']:.4g} N·m (limit {lam_max:.4g}); "
-         f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
-         f"{'FEASIBLE' if feasible else 'NOT FEASIBLE: a limit is exceeded'}")
+    _say(
+        args,
+        f"  contact force: max |λ| {out['check']['max_abs_lambda']:.4g} N·m (limit {lam_max:.4g}); "
+        f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
+        f"{'FEASIBLE' if feasible else 'NOT FEASIBLE: a limit is exceeded'}",
+    )
     _say(args, f"  wrote {files['csv']}, {files['json']}, {files['figure']} ({out['elapsed_s']:.0f} s)")
     return 0 if feasible else 1
 

@@ -56,9 +56,21 @@ from .problem import Problem, statistics
 
 
 __all__ = [
-    "ChannelNoise", "encoder_noise", "Experiment", "experiment", "Prediction", "predict", "Limits",
-    "DesignResult", "optimal_design", "design_loss", "evaluate_design", "input_spec", "CRITERIA",
-    "embedded_truth", "variator_experiment",
+    "ChannelNoise",
+    "encoder_noise",
+    "Experiment",
+    "experiment",
+    "Prediction",
+    "predict",
+    "Limits",
+    "DesignResult",
+    "optimal_design",
+    "design_loss",
+    "evaluate_design",
+    "input_spec",
+    "CRITERIA",
+    "embedded_truth",
+    "variator_experiment",
 ]
 
 CRITERIA = ("D", "A")
@@ -107,8 +119,10 @@ def encoder_noise(counts_per_rev: float, jitter_std: float = 0.0) -> ChannelNois
 
 def _sigmas(noise, observe) -> dict:
     if noise is None:
-        raise ValueError("noise: give the measurement noise per observed channel, e.g. "
-                         "{'phi1': encoder_noise(8192, 3e-4), 'phi2': 7e-4} (rad); it sets the information")
+        raise ValueError(
+            "noise: give the measurement noise per observed channel, e.g. "
+            "{'phi1': encoder_noise(8192, 3e-4), 'phi2': 7e-4} (rad); it sets the information"
+        )
     if not isinstance(noise, dict):
         noise = {c: noise for c in observe}
     missing = [c for c in observe if c not in noise]
@@ -170,11 +184,23 @@ class Experiment(eqx.Module):
         """The nominal motion at `params` (θ overrides the free values): a `Solution`."""
         pr = self.problem if params is None else self.with_params(params).problem
         th = self.theta(params) if theta is None else theta
-        p = pr.par.unpack(th[:self.n_params])
+        p = pr.par.unpack(th[: self.n_params])
         q0, qd0 = pr.initial_state(th, self.ts[0], p)
-        return simulate(pr.mech, p, q0, qd0, self.ts, method=pr.method, solver=pr.solver,
-                        stepsize_controller=pr.controller(), independent=pr.independent, max_steps=pr.max_steps,
-                        adjoint=ForwardSensitivity() if adjoint is None else adjoint, throw=False, record=record)
+        return simulate(
+            pr.mech,
+            p,
+            q0,
+            qd0,
+            self.ts,
+            method=pr.method,
+            solver=pr.solver,
+            stepsize_controller=pr.controller(),
+            independent=pr.independent,
+            max_steps=pr.max_steps,
+            adjoint=ForwardSensitivity() if adjoint is None else adjoint,
+            throw=False,
+            record=record,
+        )
 
     def jacobian(self, params=None):
         """Whitened sensitivities J = ∂(q_obs/σ)/∂θ (n·k, size) at `params`,
@@ -203,9 +229,21 @@ def _nominal_record(mech, params, ts, q0, qd0, observe, names, method, rtol, ato
 
 
 def experiment(
-    mech: Mechanism, params, ts, *, free: Sequence[str], positive: Sequence[str] = (),
-    observe: Optional[Sequence[str]] = None, noise=None, q0=None, qd0=None, method: str = "appell",
-    solver=None, rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 100_000,
+    mech: Mechanism,
+    params,
+    ts,
+    *,
+    free: Sequence[str],
+    positive: Sequence[str] = (),
+    observe: Optional[Sequence[str]] = None,
+    noise=None,
+    q0=None,
+    qd0=None,
+    method: str = "appell",
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
 ) -> Experiment:
     """Set up an `Experiment`: the fit's least-squares problem on the nominal
     (noise-free) motion, before any data.
@@ -240,14 +278,43 @@ def experiment(
     if bad:
         raise ValueError(f"observe: {bad} are not coordinates of the mechanism; coordinates are {names}")
     sig = _sigmas(noise, observe)
-    rec = _nominal_record(mech, params, jnp.asarray(ts), jnp.asarray(q0), jnp.asarray(qd0), observe, list(names),
-                          method, rtol, atol, max_steps)
-    problem, theta0, obs, names = prepare(mech, params, rec, free=free, positive=positive, observe=observe,
-                                          noise=sig, q0=q0, qd0=qd0, method=method, solver=solver, rtol=rtol,
-                                          atol=atol, max_steps=max_steps)
+    rec = _nominal_record(
+        mech,
+        params,
+        jnp.asarray(ts),
+        jnp.asarray(q0),
+        jnp.asarray(qd0),
+        observe,
+        list(names),
+        method,
+        rtol,
+        atol,
+        max_steps,
+    )
+    problem, theta0, obs, names = prepare(
+        mech,
+        params,
+        rec,
+        free=free,
+        positive=positive,
+        observe=observe,
+        noise=sig,
+        q0=q0,
+        qd0=qd0,
+        method=method,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+    )
     P = problem.par.size
-    return Experiment(problem=problem, ts=jnp.asarray(ts), sigma=jnp.asarray(obs.sigma),
-                      state=jnp.asarray(theta0)[P:], labels=problem.labels(names))
+    return Experiment(
+        problem=problem,
+        ts=jnp.asarray(ts),
+        sigma=jnp.asarray(obs.sigma),
+        state=jnp.asarray(theta0)[P:],
+        labels=problem.labels(names),
+    )
 
 
 # --- predicted covariance and identifiability ----------------------------------------------------------
@@ -309,18 +376,26 @@ class Prediction:
             rel = f"{s / abs(v):8.3%}" if v != 0 and np.isfinite(s) else "     n/a"
             lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
         lines += self.identifiability.messages or [
-            f"all parameters identifiable (condition number {self.identifiability.condition:.3g})"]
+            f"all parameters identifiable (condition number {self.identifiability.condition:.3g})"
+        ]
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
         """JSON-ready: {label: {"value", "std", "relative_std"}} plus "identifiable" and "messages"."""
+
         def num(x):
             x = float(x)
             return x if np.isfinite(x) else None
-        return {"parameters": {lab: {"value": num(v), "std": num(s), "relative_std": num(r)}
-                               for lab, v, s, r in zip(self.labels, self.values, self.std, self.relative_std)},
-                "identifiable": self.identifiable, "messages": list(self.identifiability.messages),
-                "max_abs_multiplier": None if self.max_multiplier is None else self.max_multiplier.tolist()}
+
+        return {
+            "parameters": {
+                lab: {"value": num(v), "std": num(s), "relative_std": num(r)}
+                for lab, v, s, r in zip(self.labels, self.values, self.std, self.relative_std)
+            },
+            "identifiable": self.identifiable,
+            "messages": list(self.identifiability.messages),
+            "max_abs_multiplier": None if self.max_multiplier is None else self.max_multiplier.tolist(),
+        }
 
 
 @eqx.filter_jit
@@ -370,9 +445,20 @@ def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Predicti
         estimates[exp.labels[j]] = {"value": float(values[j]), "std": float(std[j])}
     lam = None if lam is None else np.max(np.abs(np.asarray(lam)), axis=0)
     return Prediction(
-        labels=exp.labels, values=values, std=std, relative_std=rel, covariance=stats["cov"] * np.outer(D, D),
-        fisher=J.T @ J, identifiability=ident, max_multiplier=lam, status=int(status), estimates=estimates,
-        problem=exp.problem, theta=theta, cov_theta=stats["cov"], null_directions=null,
+        labels=exp.labels,
+        values=values,
+        std=std,
+        relative_std=rel,
+        covariance=stats["cov"] * np.outer(D, D),
+        fisher=J.T @ J,
+        identifiability=ident,
+        max_multiplier=lam,
+        status=int(status),
+        estimates=estimates,
+        problem=exp.problem,
+        theta=theta,
+        cov_theta=stats["cov"],
+        null_directions=null,
     )
 
 
@@ -407,13 +493,24 @@ def _hinge2(x):
 
 def _positive_power(exp: Experiment, params, sol):
     forces = exp.problem.mech.forces
-    Q = jax.vmap(lambda q, qd, t: forces(q, qd, t, params))(sol.q, sol.qd, sol.ts) if forces is not None \
+    Q = (
+        jax.vmap(lambda q, qd, t: forces(q, qd, t, params))(sol.q, sol.qd, sol.ts)
+        if forces is not None
         else jnp.zeros_like(sol.qd)
+    )
     return jnp.sum(jnp.maximum(Q * sol.qd, 0.0), axis=1)
 
 
-def _criterion_terms(exp: Experiment, params, kind: str, of_idx: tuple, limits: Limits, std_idx: tuple,
-                     std_max: tuple, margin: float = CONSTRAINT_MARGIN):
+def _criterion_terms(
+    exp: Experiment,
+    params,
+    kind: str,
+    of_idx: tuple,
+    limits: Limits,
+    std_idx: tuple,
+    std_max: tuple,
+    margin: float = CONSTRAINT_MARGIN,
+):
     """(criterion, penalties dict, covariance of θ, solution) — pure JAX."""
     J, sol = exp.jacobian(params)
     F = J.T @ J
@@ -428,7 +525,7 @@ def _criterion_terms(exp: Experiment, params, kind: str, of_idx: tuple, limits: 
     else:
         value = jnp.log(jnp.trace(C))
     pen = {}
-    p = exp.problem.par.unpack(exp.theta(params)[:exp.n_params])
+    p = exp.problem.par.unpack(exp.theta(params)[: exp.n_params])
     if limits.multiplier is not None and sol.multipliers is not None:
         pen["multiplier"] = _hinge2(jnp.abs(sol.multipliers) / (margin * limits.multiplier))
     if limits.energy is not None or limits.power is not None:
@@ -478,8 +575,9 @@ class _Loss(eqx.Module):
         return value + self.penalty * sum(pen.values(), jnp.zeros(()))
 
 
-def design_loss(exp: Experiment, criterion: str = "D", *, of=None, limits: Optional[Limits] = None,
-                penalty: float = PENALTY) -> _Loss:
+def design_loss(
+    exp: Experiment, criterion: str = "D", *, of=None, limits: Optional[Limits] = None, penalty: float = PENALTY
+) -> _Loss:
     """The design objective as a function of a params pytree: the criterion
     plus `penalty` times the squared relative violations of `limits`
     (counted from 99 % of each limit).
@@ -543,7 +641,7 @@ def _evaluate(loss: _Loss, params):
     if lim.multiplier is not None and sol.multipliers is not None:
         out["multiplier"] = jnp.max(jnp.abs(sol.multipliers)) / lim.multiplier
     if lim.energy is not None or lim.power is not None:
-        p = loss.exp.problem.par.unpack(loss.exp.theta(params)[:loss.exp.n_params])
+        p = loss.exp.problem.par.unpack(loss.exp.theta(params)[: loss.exp.n_params])
         pw = _positive_power(loss.exp, p, sol)
         if lim.energy is not None:
             out["energy"] = jnp.sum(0.5 * (pw[1:] + pw[:-1]) * jnp.diff(sol.ts)) / lim.energy
@@ -575,9 +673,20 @@ def input_spec(params, inputs: Sequence[str]):
 
 
 def optimal_design(
-    exp: Experiment, params, inputs: Sequence[str], criterion: str = "D", *, of=None,
-    limits: Optional[Limits] = None, starts: int = 4, steps: int = 100, learning_rate: float = 0.1,
-    spread: float = 1.0, seed: int = 0, penalty: float = PENALTY, progress: bool = False,
+    exp: Experiment,
+    params,
+    inputs: Sequence[str],
+    criterion: str = "D",
+    *,
+    of=None,
+    limits: Optional[Limits] = None,
+    starts: int = 4,
+    steps: int = 100,
+    learning_rate: float = 0.1,
+    spread: float = 1.0,
+    seed: int = 0,
+    penalty: float = PENALTY,
+    progress: bool = False,
 ) -> DesignResult:
     """Choose the inputs of an experiment by gradient descent on a design criterion.
 
@@ -618,13 +727,28 @@ def optimal_design(
 
     # Adam with a cosine decay of the step to 5 % at the end: large moves first, then settling on the limits
     optimizer = optax.adam(optax.cosine_decay_schedule(learning_rate, max(int(steps), 1), alpha=0.05))
-    best, runs, k_best = multistart(loss, inits, accept=accept, trainable=spec, steps=steps, optimizer=optimizer,
-                                    gradient="forward", progress=progress)
+    best, runs, k_best = multistart(
+        loss,
+        inits,
+        accept=accept,
+        trainable=spec,
+        steps=steps,
+        optimizer=optimizer,
+        gradient="forward",
+        progress=progress,
+    )
     run = runs[k_best]
     ev = run["evaluation"]
     viol = {k: ev[k] for k in ("multiplier", "energy", "power", "std") if k in ev}
-    starts_out = [{"value": r["evaluation"]["value"], "feasible": r["accepted"],
-                   "violations": {k: r["evaluation"][k] for k in viol}, "history": r["history"]} for r in runs]
+    starts_out = [
+        {
+            "value": r["evaluation"]["value"],
+            "feasible": r["accepted"],
+            "violations": {k: r["evaluation"][k] for k in viol},
+            "history": r["history"],
+        }
+        for r in runs
+    ]
     return DesignResult(best, ev["value"], run["accepted"], viol, starts_out, k_best)
 
 
@@ -641,8 +765,17 @@ def embedded_truth() -> dict:
     return json.loads(resources.files("jaxnh").joinpath("data", "variator_truth.json").read_text())
 
 
-def variator_experiment(record: Optional[Record] = None, *, J1=None, J2=None, U21=None, w0=None,
-                        counts_per_rev=None, jitter_std=None, rtol: float = 1e-8):
+def variator_experiment(
+    record: Optional[Record] = None,
+    *,
+    J1=None,
+    J2=None,
+    U21=None,
+    w0=None,
+    counts_per_rev=None,
+    jitter_std=None,
+    rtol: float = 1e-8,
+):
     """The friction variator's identification experiment as `jaxnh fit` sets it up.
 
     Defaults are the embedded record's: its sample times (6 s at 250 Hz) and
@@ -670,6 +803,7 @@ def variator_experiment(record: Optional[Record] = None, *, J1=None, J2=None, U2
     noise = {c: encoder_noise(n, j) for c, n, j in zip(("phi1", "phi2"), counts, jitter)}
     w0 = T["w0"] if w0 is None else w0
     qd0 = [w0, float(U21(record.t[0])) * w0]
-    exp = experiment(V.mechanism(), params, record.t, free=FREE, positive=FREE, noise=noise, q0=T["phi0"], qd0=qd0,
-                     rtol=rtol)
+    exp = experiment(
+        V.mechanism(), params, record.t, free=FREE, positive=FREE, noise=noise, q0=T["phi0"], qd0=qd0, rtol=rtol
+    )
     return exp, params

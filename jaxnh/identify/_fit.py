@@ -38,8 +38,16 @@ from .problem import (
 )
 
 
-__all__ = ["fit", "prepare", "FitResult", "OPTIMIZERS", "GN_STEP_TOL", "FORWARD_MAX_UNKNOWNS", "ode_error_in_std",
-           "ODE_ERROR_STD"]
+__all__ = [
+    "fit",
+    "prepare",
+    "FitResult",
+    "OPTIMIZERS",
+    "GN_STEP_TOL",
+    "FORWARD_MAX_UNKNOWNS",
+    "ode_error_in_std",
+    "ODE_ERROR_STD",
+]
 
 OPTIMIZERS = ("levenberg-marquardt",)
 GN_STEP_TOL = 0.1  # converged: the remaining Gauss–Newton step is below 0.1 standard errors ...
@@ -168,8 +176,10 @@ class FitResult:
         ident = "identifiable" if self.identifiable else "NOT identifiable"
         est = ", ".join(f"{lab}={v:.6g}" for lab, v in list(zip(self.labels, self.values))[:6])
         more = f", … ({len(self.labels)} unknowns)" if len(self.labels) > 6 else ""
-        return (f"FitResult({status}, {ident}, {self.iterations} iterations, rms residual "
-                f"{self.rms_residual:.4g}; {est}{more}; .summary() for the table, .to_dict() for all values)")
+        return (
+            f"FitResult({status}, {ident}, {self.iterations} iterations, rms residual "
+            f"{self.rms_residual:.4g}; {est}{more}; .summary() for the table, .to_dict() for all values)"
+        )
 
     def __str__(self) -> str:
         return self.summary()
@@ -180,12 +190,17 @@ class FitResult:
         for lab, v, s in zip(self.labels, self.values, self.std):
             rel = f"{s / abs(v):8.2%}" if v != 0 and np.isfinite(s) else "     n/a"
             lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
-        lines.append(f"rms residual {self.rms_residual:.4g} ("
-                     + ", ".join(f"{k} {v:.3g}" for k, v in self.rms_by_channel.items())
-                     + "); noise used " + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
-                     + f"; s² = {self.chi2_dof:.3f}")
-        lines.append(f"{self.optimizer}: {self.iterations} iterations, "
-                     f"{'converged' if self.converged else 'NOT converged'} — {self.message}")
+        lines.append(
+            f"rms residual {self.rms_residual:.4g} ("
+            + ", ".join(f"{k} {v:.3g}" for k, v in self.rms_by_channel.items())
+            + "); noise used "
+            + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
+            + f"; s² = {self.chi2_dof:.3f}"
+        )
+        lines.append(
+            f"{self.optimizer}: {self.iterations} iterations, "
+            f"{'converged' if self.converged else 'NOT converged'} — {self.message}"
+        )
         lines.append(self.lack_of_fit.message)
         lines += self.identifiability.messages
         return "\n".join(lines)
@@ -242,6 +257,7 @@ def _local_rates(t, y, i0, window=RATE_WINDOW):
 @eqx.filter_jit
 def _velocity_map(problem: Problem, q, t, params):
     """b, B with observed velocities = B v + b for independent velocities v."""
+
     def f(v):
         return problem.split().velocities(q, v, t, params, problem.independent)[jnp.asarray(problem.observed)]
 
@@ -262,10 +278,24 @@ def _independent_from_rates(problem: Problem, q, rates, t, params):
 
 
 def prepare(
-    mech: Mechanism, params, data: Record, *, free: Sequence[str], positive: Sequence[str] = (),
-    observe: Optional[Sequence[str]] = None, noise=None, q0=None, qd0=None, method: str = "appell",
-    solver=None, rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 100_000,
-    shooting: int = 1, differentiation: str = "forward", defect_weight: float = 10.0,
+    mech: Mechanism,
+    params,
+    data: Record,
+    *,
+    free: Sequence[str],
+    positive: Sequence[str] = (),
+    observe: Optional[Sequence[str]] = None,
+    noise=None,
+    q0=None,
+    qd0=None,
+    method: str = "appell",
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    shooting: int = 1,
+    differentiation: str = "forward",
+    defect_weight: float = 10.0,
 ):
     """Set up the least-squares problem without solving it.
 
@@ -318,12 +348,23 @@ def prepare(
         length = math.ceil((n - 1) / shooting) + 1
         starts = tuple(k * (length - 1) for k in range(shooting - 1)) + (n - length,)
         if length < 2 * RATE_WINDOW or any(b <= a for a, b in zip(starts, starts[1:])):
-            raise ValueError(f"shooting={shooting}: segments of {length} samples are too short for a record "
-                             f"of {n} samples; use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments")
+            raise ValueError(
+                f"shooting={shooting}: segments of {length} samples are too short for a record "
+                f"of {n} samples; use at most {max(1, (n - 1) // (2 * RATE_WINDOW))} segments"
+            )
     problem = Problem(
-        mech=mech, par=par, q0_fixed=jnp.asarray(q0_fixed, f), observed=observed, independent=tuple(independent),
-        starts=starts, length=length, method=method, solver=fit_solver(solver, params, rtol),
-        tol=jnp.asarray([rtol, atol], f), max_steps=max_steps, differentiation=differentiation,
+        mech=mech,
+        par=par,
+        q0_fixed=jnp.asarray(q0_fixed, f),
+        observed=observed,
+        independent=tuple(independent),
+        starts=starts,
+        length=length,
+        method=method,
+        solver=fit_solver(solver, params, rtol),
+        tol=jnp.asarray([rtol, atol], f),
+        max_steps=max_steps,
+        differentiation=differentiation,
         defect_weight=defect_weight,
     )
     # starting initial state: data at t0 for the observed coordinates, rates from a local fit
@@ -358,8 +399,10 @@ def _noise(noise, observe, y):
         sigma = np.asarray(noise_level(jnp.asarray(y)))
         if not np.all(sigma > 0):
             zero = [c for c, s in zip(observe, sigma) if not s > 0]
-            raise ValueError(f"noise=None: the noise level estimated from the data is zero for {zero} "
-                             "(noise-free data?); pass noise= with the measurement standard deviation")
+            raise ValueError(
+                f"noise=None: the noise level estimated from the data is zero for {zero} "
+                "(noise-free data?); pass noise= with the measurement standard deviation"
+            )
         return sigma
     if isinstance(noise, dict):
         missing = [c for c in observe if c not in noise]
@@ -369,8 +412,9 @@ def _noise(noise, observe, y):
     else:
         sigma = np.broadcast_to(np.asarray(noise, dtype=float), (len(observe),)).copy()
     if not np.all(np.isfinite(sigma) & (sigma > 0)):
-        raise ValueError(f"noise: standard deviations must be finite and > 0; got "
-                         f"{ {c: float(x) for c, x in zip(observe, sigma)} }")
+        raise ValueError(
+            f"noise: standard deviations must be finite and > 0; got { {c: float(x) for c, x in zip(observe, sigma)} }"
+        )
     return sigma
 
 
@@ -393,8 +437,9 @@ def fit_solver(solver, params, rtol: float):
     from .._simulate import DOP853_BELOW_RTOL
     from ..profiles import Sampled
 
-    sampled = any(isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(
-        params, is_leaf=lambda x: isinstance(x, Sampled)))
+    sampled = any(
+        isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(params, is_leaf=lambda x: isinstance(x, Sampled))
+    )
     if sampled and rtol >= DOP853_BELOW_RTOL:
         return diffrax.Tsit5()
     # an explicit solver keeps fits on diffrax's loop (the lean loop steps onto every report
@@ -498,30 +543,48 @@ def fit(
         raise ValueError(f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {optimizer!r}")
     if not lm and not hasattr(optimizer, "update"):
         raise TypeError(
-            f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; "
-            f"got {type(optimizer).__name__}"
+            f"optimizer must be one of {OPTIMIZERS} or an optax GradientTransformation; got {type(optimizer).__name__}"
         )
     if differentiation not in ("auto", "forward", "reverse"):
         raise ValueError(f"differentiation must be 'auto', 'forward' or 'reverse'; got {differentiation!r}")
     if lm and differentiation == "reverse":
-        raise ValueError("differentiation='reverse' is not available with Levenberg–Marquardt, which needs the "
-                         "Jacobian of every residual (forward mode); use an optax optimizer for reverse mode")
+        raise ValueError(
+            "differentiation='reverse' is not available with Levenberg–Marquardt, which needs the "
+            "Jacobian of every residual (forward mode); use an optax optimizer for reverse mode"
+        )
     if not isinstance(shooting, (int, np.integer)) or isinstance(shooting, bool) or shooting < 1:
         raise ValueError(f"shooting must be a positive integer (number of segments); got {shooting!r}")
     auto_rtol = isinstance(rtol, str)
     if auto_rtol and rtol != "auto":
         raise ValueError(f"rtol must be a number or 'auto'; got {rtol!r}")
     rtol = AUTO_RTOL_START if auto_rtol else rtol
-    kw: dict[str, Any] = dict(free=free, positive=positive, observe=observe, noise=noise, q0=q0, qd0=qd0,
-                              method=method, solver=solver, rtol=rtol, atol=atol, max_steps=max_steps)
+    kw: dict[str, Any] = dict(
+        free=free,
+        positive=positive,
+        observe=observe,
+        noise=noise,
+        q0=q0,
+        qd0=qd0,
+        method=method,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+    )
     iterations = 0
     theta_ms = None
     if shooting > 1:
         problem, theta0, obs, names = prepare(mech, params, data, shooting=shooting, **kw)
         if progress:
             print(f"multiple shooting: {shooting} segments, {problem.size} unknowns")
-        out = solve_least_squares(problem, theta0, obs, tol=max(tol, 1e-6), max_steps=max_iterations,
-                                  progress=_progress(problem, names, obs) if progress else None)
+        out = solve_least_squares(
+            problem,
+            theta0,
+            obs,
+            tol=max(tol, 1e-6),
+            max_steps=max_iterations,
+            progress=_progress(problem, names, obs) if progress else None,
+        )
         iterations += int(out["steps"])
         theta_ms = np.asarray(out["theta"])[: problem.n_params + problem.n_initial]
     problem, theta0, obs, names = prepare(mech, params, data, **kw)
@@ -531,19 +594,32 @@ def fit(
     if theta_ms is not None:
         theta0 = jnp.asarray(theta_ms)
     if progress:
-        print(f"{'Levenberg–Marquardt' if lm else 'optax'} on {problem.size} unknowns, {obs.y.size} residuals "
-              f"({', '.join(problem.labels(names)[:6])}{', …' if problem.size > 6 else ''})")
+        print(
+            f"{'Levenberg–Marquardt' if lm else 'optax'} on {problem.size} unknowns, {obs.y.size} residuals "
+            f"({', '.join(problem.labels(names)[:6])}{', …' if problem.size > 6 else ''})"
+        )
     if lm:
-        out = solve_least_squares(problem, theta0, obs, tol=tol, max_steps=max_iterations,
-                                  progress=_progress(problem, names, obs) if progress else None)
+        out = solve_least_squares(
+            problem,
+            theta0,
+            obs,
+            tol=tol,
+            max_steps=max_iterations,
+            progress=_progress(problem, names, obs) if progress else None,
+        )
         theta, r, J = out["theta"], out["r"], out["J"]
         iterations += int(out["steps"])
         code = int(out["result"])
         stopped = code == 0
-        why = "stopped on its tolerances" if stopped else (
-            f"iteration limit ({max_iterations}) reached"
-            if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
-            else f"optimistix stopped: {_optx_message(code)}")
+        why = (
+            "stopped on its tolerances"
+            if stopped
+            else (
+                f"iteration limit ({max_iterations}) reached"
+                if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
+                else f"optimistix stopped: {_optx_message(code)}"
+            )
+        )
         opt_name = "levenberg-marquardt"
     else:
         theta, r, J, its, stopped = _optax_loop(problem, optimizer, theta0, obs, tol, max_iterations, progress)
@@ -564,31 +640,62 @@ def fit(
         new_rtol = max(problem.rtol * factor, AUTO_RTOL_MIN)
         problem = problem.with_tolerances(new_rtol, problem.atol * new_rtol / problem.rtol)
         if progress:
-            print(f"  the ODE solver's error is {err:.2g} standard errors (> {ODE_ERROR_STD}): "
-                  f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}")
+            print(
+                f"  the ODE solver's error is {err:.2g} standard errors (> {ODE_ERROR_STD}): "
+                f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}"
+            )
         if lm:
-            out = solve_least_squares(problem, jnp.asarray(theta), obs, tol=tol, max_steps=max_iterations,
-                                      progress=_progress(problem, names, obs) if progress else None)
+            out = solve_least_squares(
+                problem,
+                jnp.asarray(theta),
+                obs,
+                tol=tol,
+                max_steps=max_iterations,
+                progress=_progress(problem, names, obs) if progress else None,
+            )
             theta, r, J = out["theta"], out["r"], out["J"]
             iterations += int(out["steps"])
             code = int(out["result"])
             stopped = code == 0
-            why = "stopped on its tolerances" if stopped else (
-                f"iteration limit ({max_iterations}) reached"
-                if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
-                else f"optimistix stopped: {_optx_message(code)}")
+            why = (
+                "stopped on its tolerances"
+                if stopped
+                else (
+                    f"iteration limit ({max_iterations}) reached"
+                    if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
+                    else f"optimistix stopped: {_optx_message(code)}"
+                )
+            )
         else:
-            theta, r, J, its, stopped = _optax_loop(problem, optimizer, jnp.asarray(theta), obs, tol,
-                                                    max_iterations, progress)
+            theta, r, J, its, stopped = _optax_loop(
+                problem, optimizer, jnp.asarray(theta), obs, tol, max_iterations, progress
+            )
             iterations += its
             if J is None:
                 r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
             why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
     if first_err is not None and problem.rtol < AUTO_RTOL_START:
-        why += (f" (ODE rtol tightened to {problem.rtol:.2g}: at rtol {AUTO_RTOL_START:g} the solver's error "
-                f"was {first_err:.2g} standard errors)")
-    return _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, opt_name,
-                   differentiation, shooting, time.perf_counter() - started, noise_estimated=noise is None)
+        why += (
+            f" (ODE rtol tightened to {problem.rtol:.2g}: at rtol {AUTO_RTOL_START:g} the solver's error "
+            f"was {first_err:.2g} standard errors)"
+        )
+    return _result(
+        problem,
+        names,
+        obs,
+        theta,
+        r,
+        J,
+        stopped,
+        why,
+        iterations,
+        rank_tol,
+        opt_name,
+        differentiation,
+        shooting,
+        time.perf_counter() - started,
+        noise_estimated=noise is None,
+    )
 
 
 def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
@@ -680,8 +787,11 @@ def _optax_loop(problem, optimizer, theta, obs, tol, max_iterations, progress, p
         if value < best[0]:
             best = (value, theta, r, J)
         if progress:
-            print(f"  iter {k - 1:3d}  loss {value:12.6e}  rms {np.sqrt(2 * value / r.size):9.4g}  "
-                  f"step {float(jnp.max(jnp.abs(new - theta))):8.2e}", flush=True)
+            print(
+                f"  iter {k - 1:3d}  loss {value:12.6e}  rms {np.sqrt(2 * value / r.size):9.4g}  "
+                f"step {float(jnp.max(jnp.abs(new - theta))):8.2e}",
+                flush=True,
+            )
         theta = new
         if len(history) > patience and abs(history[-1 - patience] - value) <= tol * max(abs(value), 1e-300):
             stopped = True
@@ -689,8 +799,23 @@ def _optax_loop(problem, optimizer, theta, obs, tol, max_iterations, progress, p
     return best[1], best[2], best[3], k, stopped
 
 
-def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol, optimizer, differentiation,
-            shooting, elapsed, noise_estimated: bool = False) -> FitResult:
+def _result(
+    problem,
+    names,
+    obs,
+    theta,
+    r,
+    J,
+    stopped,
+    why,
+    iterations,
+    rank_tol,
+    optimizer,
+    differentiation,
+    shooting,
+    elapsed,
+    noise_estimated: bool = False,
+) -> FitResult:
     stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
     par = problem.par
     labels = problem.labels(names)
@@ -703,7 +828,7 @@ def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol
     covariance = cov_theta * np.outer(D, D)
     ident = analyse(stats, labels, log, rank_tol)
     null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
-    params = par.unpack(jnp.asarray(theta[:par.size]))
+    params = par.unpack(jnp.asarray(theta[: par.size]))
     q0, qd0 = (np.asarray(x) for x in problem.initial_state(jnp.asarray(theta), obs.t[0], params))
     n, k = obs.y.shape
     sigma = np.asarray(obs.sigma)
@@ -715,8 +840,11 @@ def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol
     gn = float(stats["gn_step"])
     tiny = bool(np.all(np.abs(stats["gn_delta"]) <= STEP_RTOL * (1 + np.abs(theta))))
     converged = bool(stopped and (gn < GN_STEP_TOL or tiny) and not failed)
-    message = why + (f"; remaining Gauss–Newton step {gn:.2g} standard errors" if not tiny or gn < GN_STEP_TOL
-                     else "; remaining Gauss–Newton step below 1e-9 of every unknown (residuals at rounding level)")
+    message = why + (
+        f"; remaining Gauss–Newton step {gn:.2g} standard errors"
+        if not tiny or gn < GN_STEP_TOL
+        else "; remaining Gauss–Newton step below 1e-9 of every unknown (residuals at rounding level)"
+    )
     if failed:
         message += "; THE SIMULATION FAILED at the final parameters (see jaxnh.simulate's status)"
     estimates = {}
@@ -732,13 +860,35 @@ def _result(problem, names, obs, theta, r, J, stopped, why, iterations, rank_tol
     if lof.significant and converged:
         warnings.warn("jaxnh.fit: " + lof.message, stacklevel=3)
     return FitResult(
-        params=params, q0=q0, qd0=qd0, estimates=estimates, labels=labels, values=values, std=std,
-        covariance=covariance, converged=converged, iterations=iterations, message=message,
+        params=params,
+        q0=q0,
+        qd0=qd0,
+        estimates=estimates,
+        labels=labels,
+        values=values,
+        std=std,
+        covariance=covariance,
+        converged=converged,
+        iterations=iterations,
+        message=message,
         rms_residual=float(np.sqrt(np.mean(res**2))),
         rms_by_channel={c: float(np.sqrt(np.mean(res[:, i] ** 2))) for i, c in enumerate(observe)},
-        noise={c: float(s) for c, s in zip(observe, sigma)}, chi2_dof=float(stats["s2"]), lack_of_fit=lof,
+        noise={c: float(s) for c, s in zip(observe, sigma)},
+        chi2_dof=float(stats["s2"]),
+        lack_of_fit=lof,
         identifiability=ident,
-        t=np.asarray(obs.t), observe=observe, measured=np.asarray(obs.y), fitted=fitted, residuals=res,
-        gn_step=gn, optimizer=optimizer, differentiation=differentiation, shooting=shooting, elapsed=elapsed,
-        problem=problem, theta=theta, cov_theta=cov_theta, null_directions=null,
+        t=np.asarray(obs.t),
+        observe=observe,
+        measured=np.asarray(obs.y),
+        fitted=fitted,
+        residuals=res,
+        gn_step=gn,
+        optimizer=optimizer,
+        differentiation=differentiation,
+        shooting=shooting,
+        elapsed=elapsed,
+        problem=problem,
+        theta=theta,
+        cov_theta=cov_theta,
+        null_directions=null,
     )

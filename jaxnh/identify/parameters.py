@@ -33,8 +33,11 @@ def resolve(tree, name: str):
         elif not isinstance(node, dict) and hasattr(node, part):
             node = getattr(node, part)
         else:
-            have = list(node) if isinstance(node, dict) else [
-                f for f in getattr(node, "__dataclass_fields__", {}) if not f.startswith("_")]
+            have = (
+                list(node)
+                if isinstance(node, dict)
+                else [f for f in getattr(node, "__dataclass_fields__", {}) if not f.startswith("_")]
+            )
             raise ValueError(f"free/positive: no parameter {name!r} (at {part!r}); available: {have}")
     return node
 
@@ -140,7 +143,7 @@ class Parametrisation(eqx.Module):
         values = self.natural(theta)
         start = 0
         for name, n, shapes in zip(self.names, self.sizes, self.shapes):
-            chunk = values[start:start + n]
+            chunk = values[start : start + n]
             start += n
             sub = resolve(params, name)
             mask = trainable(sub)
@@ -149,7 +152,7 @@ class Parametrisation(eqx.Module):
             new, k = [], 0
             for leaf, shape in zip(leaves, shapes):
                 m = math.prod(shape)
-                new.append(chunk[k:k + m].reshape(shape).astype(jnp.result_type(leaf)))
+                new.append(chunk[k : k + m].reshape(shape).astype(jnp.result_type(leaf)))
                 k += m
             sub = eqx.combine(jax.tree_util.tree_unflatten(treedef, new), rest)
             params = eqx.tree_at(_where(name), params, sub)

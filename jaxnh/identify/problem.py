@@ -41,8 +41,15 @@ from ..equations.split import VelocitySplit
 from .parameters import Parametrisation
 
 
-__all__ = ["Observations", "Problem", "LevenbergMarquardt", "solve_least_squares", "column_scale", "value_and_jacobian",
-           "statistics"]
+__all__ = [
+    "Observations",
+    "Problem",
+    "LevenbergMarquardt",
+    "solve_least_squares",
+    "column_scale",
+    "value_and_jacobian",
+    "statistics",
+]
 
 LM_TAU = 1e-3  # initial Levenberg–Marquardt damping relative to diag(JᵀJ)
 TRUST_HIGH_CUTOFF = 0.75  # actual/predicted decrease above which the trust region grows
@@ -164,15 +171,15 @@ class Problem(eqx.Module):
         P, k = self.n_params, len(self.observed)
         q0 = self.q0_fixed
         if k:
-            q0 = q0.at[jnp.asarray(self.observed)].set(theta[P:P + k])
-        v0 = theta[P + k:P + self.n_initial]
+            q0 = q0.at[jnp.asarray(self.observed)].set(theta[P : P + k])
+        v0 = theta[P + k : P + self.n_initial]
         return q0, self.split().velocities(q0, v0, t0, params, self.independent)
 
     def segment_states(self, theta, t_starts, params):
         """(q, qd) at the start of segments 1.. (each (S−1, s))."""
         base = self.n_params + self.n_initial
         X = theta[base:].reshape(len(self.starts) - 1, self.n_segment_state)
-        q, v = X[:, :self.n_coords], X[:, self.n_coords:]
+        q, v = X[:, : self.n_coords], X[:, self.n_coords :]
         qd = jax.vmap(lambda q_, v_, t_: self.split().velocities(q_, v_, t_, params, self.independent))(q, v, t_starts)
         return q, qd
 
@@ -180,15 +187,24 @@ class Problem(eqx.Module):
 
     def _simulate(self, params, q0, qd0, ts, adjoint):
         sol = simulate(
-            self.mech, params, q0, qd0, ts, method=self.method, solver=self.solver,
-            stepsize_controller=self.controller(), independent=self.independent, max_steps=self.max_steps,
-            adjoint=adjoint, throw=False,
+            self.mech,
+            params,
+            q0,
+            qd0,
+            ts,
+            method=self.method,
+            solver=self.solver,
+            stepsize_controller=self.controller(),
+            independent=self.independent,
+            max_steps=self.max_steps,
+            adjoint=adjoint,
+            throw=False,
         )
         return sol.q, sol.qd
 
     def trajectory(self, theta, t, adjoint=None):
         """Simulated coordinates (n, s) at the sample times t from θ (single shooting)."""
-        params = self.par.unpack(theta[:self.n_params])
+        params = self.par.unpack(theta[: self.n_params])
         q0, qd0 = self.initial_state(theta, t[0], params)
         return self._simulate(params, q0, qd0, t, adjoint)[0]
 
@@ -196,9 +212,12 @@ class Problem(eqx.Module):
         """Weighted residuals (vector) without the custom Jacobian rule."""
         # the Jacobian of the residuals the fit computes: the sensitivities take the primal solve's
         # steps (no sensitivity error control), so Gauss–Newton sees the derivative of its own residual
-        adjoint = (ForwardSensitivity(error_control=False) if self.differentiation == "forward"
-                   else diffrax.RecursiveCheckpointAdjoint())
-        params = self.par.unpack(theta[:self.n_params])
+        adjoint = (
+            ForwardSensitivity(error_control=False)
+            if self.differentiation == "forward"
+            else diffrax.RecursiveCheckpointAdjoint()
+        )
+        params = self.par.unpack(theta[: self.n_params])
         obs = jnp.asarray(self.observed)
         if len(self.starts) == 1:
             q0, qd0 = self.initial_state(theta, data.t[0], params)
@@ -289,8 +308,15 @@ class _Progress(eqx.Module):
         shown = len(self.labels)
         theta = self.theta0 + kw["y"][1] / self.scale
         jax.debug.callback(
-            _print_progress, kw["num_steps"][1], kw["loss_this_step"][1], kw["loss_last_accepted_step"][1],
-            kw["step_size"][1], theta[:shown], self.labels, self.log, self.n_residuals,
+            _print_progress,
+            kw["num_steps"][1],
+            kw["loss_this_step"][1],
+            kw["loss_last_accepted_step"][1],
+            kw["step_size"][1],
+            theta[:shown],
+            self.labels,
+            self.log,
+            self.n_residuals,
         )
 
 
@@ -298,8 +324,11 @@ def _print_progress(k, loss, best, step, y, labels, log, n):
     vals = "  ".join(f"{lab}={(np.exp(v) if lg else v):.6g}" for lab, v, lg in zip(labels, np.asarray(y), log))
     rms = np.sqrt(2 * float(loss) / n)
     best = f"{float(best):12.6e}" if int(k) > 0 else f"{'-':>12}"
-    print(f"  iter {int(k):3d}  loss {float(loss):12.6e}  rms {rms:9.4g}  "
-          f"best {best}  trust radius {float(step):8.2e}  {vals}", flush=True)
+    print(
+        f"  iter {int(k):3d}  loss {float(loss):12.6e}  rms {rms:9.4g}  "
+        f"best {best}  trust radius {float(step):8.2e}  {vals}",
+        flush=True,
+    )
 
 
 GN_STOP_TOL = 0.05
@@ -359,9 +388,16 @@ class LevenbergMarquardt(optx.LevenbergMarquardt):
 
 
 @eqx.filter_jit
-def solve_least_squares(problem: Problem, theta0, data: Observations, tol: float = 1e-8,
-                        max_steps: int = 100, progress: Optional[_Progress] = None, gn_tol: float = GN_STOP_TOL,
-                        scale=None):
+def solve_least_squares(
+    problem: Problem,
+    theta0,
+    data: Observations,
+    tol: float = 1e-8,
+    max_steps: int = 100,
+    progress: Optional[_Progress] = None,
+    gn_tol: float = GN_STOP_TOL,
+    scale=None,
+):
     """Levenberg–Marquardt (optimistix) from θ0; pure JAX, so it vmaps over data.
 
     Stops on optimistix's Cauchy test with rtol = atol = `tol`, or when the
@@ -385,8 +421,11 @@ def solve_least_squares(problem: Problem, theta0, data: Observations, tol: float
     def fn(z, args):
         return problem.residuals(theta0 + z / scale, args)
 
-    verbose = False if progress is None else eqx.tree_at(
-        lambda p: (p.theta0, p.scale), progress, (theta0, scale), is_leaf=lambda x: x is None)
+    verbose = (
+        False
+        if progress is None
+        else eqx.tree_at(lambda p: (p.theta0, p.scale), progress, (theta0, scale), is_leaf=lambda x: x is None)
+    )
     solver = LevenbergMarquardt(tol, tol, theta0, scale, gn_tol=gn_tol, verbose=verbose)
     sol = optx.least_squares(fn, solver, jnp.zeros_like(theta0), args=data, max_steps=max_steps, throw=False)
     info = sol.state.f_info
@@ -433,5 +472,16 @@ def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
     Pr = jnp.where(keep, U.T @ r, 0.0)
     gn_step = jnp.linalg.norm(Pr) / jnp.sqrt(jnp.maximum(s2, jnp.finfo(r.dtype).tiny))
     delta = -(Vt.T @ (Pr / jnp.where(keep, s, 1.0))) / c_safe
-    return {"cov": cov, "std": std, "s2": s2, "dof": dof, "sv": rel, "Vt": Vt, "colnorm": c,
-            "rank": rank, "gn_step": gn_step, "gn_delta": delta, "undetermined": undetermined}
+    return {
+        "cov": cov,
+        "std": std,
+        "s2": s2,
+        "dof": dof,
+        "sv": rel,
+        "Vt": Vt,
+        "colnorm": c,
+        "rank": rank,
+        "gn_step": gn_step,
+        "gn_delta": delta,
+        "undetermined": undetermined,
+    }

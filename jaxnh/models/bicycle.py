@@ -47,10 +47,28 @@ from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
 
 
 __all__ = [
-    "BENCHMARK", "PUBLISHED", "COORDINATES", "ROLL", "STEER", "INDEPENDENT", "LEAN_STEER",
-    "default_params", "bodies", "front_contact", "rolling", "system", "mechanism",
-    "upright", "linearized", "linear_lean_steer", "linearized_speeds", "canonical_matrices", "canonical_from",
-    "weave_speed", "capsize_speed", "characteristic_polynomial",
+    "BENCHMARK",
+    "PUBLISHED",
+    "COORDINATES",
+    "ROLL",
+    "STEER",
+    "INDEPENDENT",
+    "LEAN_STEER",
+    "default_params",
+    "bodies",
+    "front_contact",
+    "rolling",
+    "system",
+    "mechanism",
+    "upright",
+    "linearized",
+    "linear_lean_steer",
+    "linearized_speeds",
+    "canonical_matrices",
+    "canonical_from",
+    "weave_speed",
+    "capsize_speed",
+    "characteristic_polynomial",
 ]
 
 COORDINATES = ("x", "y", "yaw", "roll", "pitch", "rear_wheel", "steer", "front_wheel")
@@ -60,11 +78,32 @@ INDEPENDENT = (ROLL, REAR, STEER)
 #: Table 1 of Meijaard et al. (2007): SI units, inertias about the body's mass
 #: centre in the reference configuration's axes (x forward, z down).
 BENCHMARK = {
-    "w": 1.02, "c": 0.08, "lam": np.pi / 10, "g": 9.81,
-    "rR": 0.3, "mR": 2.0, "IRxx": 0.0603, "IRyy": 0.12,
-    "xB": 0.3, "zB": -0.9, "mB": 85.0, "IBxx": 9.2, "IByy": 11.0, "IBzz": 2.8, "IBxz": 2.4,
-    "xH": 0.9, "zH": -0.7, "mH": 4.0, "IHxx": 0.05892, "IHyy": 0.06, "IHzz": 0.00708, "IHxz": -0.00756,
-    "rF": 0.35, "mF": 3.0, "IFxx": 0.1405, "IFyy": 0.28,
+    "w": 1.02,
+    "c": 0.08,
+    "lam": np.pi / 10,
+    "g": 9.81,
+    "rR": 0.3,
+    "mR": 2.0,
+    "IRxx": 0.0603,
+    "IRyy": 0.12,
+    "xB": 0.3,
+    "zB": -0.9,
+    "mB": 85.0,
+    "IBxx": 9.2,
+    "IByy": 11.0,
+    "IBzz": 2.8,
+    "IBxz": 2.4,
+    "xH": 0.9,
+    "zH": -0.7,
+    "mH": 4.0,
+    "IHxx": 0.05892,
+    "IHyy": 0.06,
+    "IHzz": 0.00708,
+    "IHxz": -0.00756,
+    "rF": 0.35,
+    "mF": 3.0,
+    "IFxx": 0.1405,
+    "IFyy": 0.28,
 }
 
 #: Published results for the benchmark parameters (eq. 5.4 and §5 of the paper).
@@ -76,8 +115,12 @@ PUBLISHED = {
     "weave_speed": 4.29238253634111,
     "capsize_speed": 6.02426201538837,
     "eigenvalues_v0": [3.13164324790656, -3.13164324790656, 5.53094371765393, -5.53094371765393],
-    "eigenvalues_v5": [-14.0783896927982, complex(-0.77534188219585, 4.46486771378823),
-                       complex(-0.77534188219585, -4.46486771378823), -0.32286642900409],
+    "eigenvalues_v5": [
+        -14.0783896927982,
+        complex(-0.77534188219585, 4.46486771378823),
+        complex(-0.77534188219585, -4.46486771378823),
+        -0.32286642900409,
+    ],
 }
 
 
@@ -169,8 +212,9 @@ FRONT_WHEEL = Wheel(_front_wheel_pose, _front_radius, axle=1, normal=(0.0, 0.0, 
 
 def bodies() -> RigidBodies:
     """The four bodies (rear wheel, rear frame, front frame, front wheel) under gravity."""
-    return RigidBodies(_poses, _inertias, gravity=_gravity,
-                       names=("rear wheel", "rear frame", "front frame", "front wheel"))
+    return RigidBodies(
+        _poses, _inertias, gravity=_gravity, names=("rear wheel", "rear frame", "front frame", "front wheel")
+    )
 
 
 def front_contact(q, t, p):
@@ -190,8 +234,14 @@ def system() -> HolonomicMechanism:
     configuration), the roll, rear wheel and steer rates are the independent velocities."""
     b = bodies()
     return HolonomicMechanism(
-        b.kinetic, front_contact, dependent=(PITCH,), constraints=rolling, potential=b.potential,
-        acceleration_energy=b.acceleration_energy, names=COORDINATES, independent=INDEPENDENT,
+        b.kinetic,
+        front_contact,
+        dependent=(PITCH,),
+        constraints=rolling,
+        potential=b.potential,
+        acceleration_energy=b.acceleration_energy,
+        names=COORDINATES,
+        independent=INDEPENDENT,
     )
 
 
@@ -250,13 +300,26 @@ def linearized(v, params=None, method: str = "lagrange"):
     steady = jnp.zeros(len(INDEPENDENT), q.dtype)
     if method == "lagrange":
         return linearize(
-            mechanism("lagrange"), params, q, qd, coordinates=(ROLL, STEER), speeds=INDEPENDENT,
-            method="lagrange", complete=system().restore, accelerations=steady,
+            mechanism("lagrange"),
+            params,
+            q,
+            qd,
+            coordinates=(ROLL, STEER),
+            speeds=INDEPENDENT,
+            method="lagrange",
+            complete=system().restore,
+            accelerations=steady,
         )
     sel = jnp.asarray(FREE)
     return linearize(
-        mechanism(method), params, q[sel], qd[sel], coordinates=_reduce((ROLL, STEER)),
-        speeds=_reduce(INDEPENDENT), method="appell", accelerations=steady,
+        mechanism(method),
+        params,
+        q[sel],
+        qd[sel],
+        coordinates=_reduce((ROLL, STEER)),
+        speeds=_reduce(INDEPENDENT),
+        method="appell",
+        accelerations=steady,
     )
 
 
@@ -325,8 +388,14 @@ def characteristic_polynomial(mats, v, g):
     M, C, K = mats["M"], v * mats["C1"], g * mats["K0"] + v**2 * mats["K2"]
     a4 = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
     a3 = M[0, 0] * C[1, 1] + C[0, 0] * M[1, 1] - M[0, 1] * C[1, 0] - C[0, 1] * M[1, 0]
-    a2 = (M[0, 0] * K[1, 1] + K[0, 0] * M[1, 1] - M[0, 1] * K[1, 0] - K[0, 1] * M[1, 0]
-          + C[0, 0] * C[1, 1] - C[0, 1] * C[1, 0])
+    a2 = (
+        M[0, 0] * K[1, 1]
+        + K[0, 0] * M[1, 1]
+        - M[0, 1] * K[1, 0]
+        - K[0, 1] * M[1, 0]
+        + C[0, 0] * C[1, 1]
+        - C[0, 1] * C[1, 0]
+    )
     a1 = C[0, 0] * K[1, 1] + K[0, 0] * C[1, 1] - C[0, 1] * K[1, 0] - K[0, 1] * C[1, 0]
     a0 = K[0, 0] * K[1, 1] - K[0, 1] * K[1, 0]
     return a4, a3, a2, a1, a0

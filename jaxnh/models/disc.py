@@ -33,8 +33,17 @@ from ..rigid import RigidBodies, rot_x, rot_y, rot_z, Wheel
 
 
 __all__ = [
-    "COORDINATES", "mechanism", "default_params", "bodies", "steady_spin", "steady_state",
-    "steady_path", "critical_spin", "lean_eigenvalue_squared", "upright", "linearized",
+    "COORDINATES",
+    "mechanism",
+    "default_params",
+    "bodies",
+    "steady_spin",
+    "steady_state",
+    "steady_path",
+    "critical_spin",
+    "lean_eigenvalue_squared",
+    "upright",
+    "linearized",
 ]
 
 COORDINATES = ("x", "y", "yaw", "lean", "spin")
@@ -75,8 +84,12 @@ def rolling(q, qd, t, p):
 
 _BODIES = bodies()
 MECHANISM = Mechanism(
-    _BODIES.kinetic, constraints=rolling, potential=_BODIES.potential,
-    acceleration_energy=_BODIES.acceleration_energy, names=COORDINATES, independent=INDEPENDENT,
+    _BODIES.kinetic,
+    constraints=rolling,
+    potential=_BODIES.potential,
+    acceleration_energy=_BODIES.acceleration_energy,
+    names=COORDINATES,
+    independent=INDEPENDENT,
 )
 
 
@@ -95,8 +108,9 @@ def default_params(m=1.0, r=0.3, g=9.81) -> dict:
 def steady_spin(lean, yaw_rate, p):
     """Spin rate θ̇ (rad/s) of the steady motion at lean φ (rad) and yaw rate Ψ (rad/s)."""
     s, c = jnp.sin(lean), jnp.cos(lean)
-    w2 = ((p["I1"] * yaw_rate**2 * s * c - p["m"] * p["g"] * p["r"] * s)
-          / ((p["I3"] + p["m"] * p["r"] ** 2) * yaw_rate * c))
+    w2 = (p["I1"] * yaw_rate**2 * s * c - p["m"] * p["g"] * p["r"] * s) / (
+        (p["I3"] + p["m"] * p["r"] ** 2) * yaw_rate * c
+    )
     return w2 - yaw_rate * s
 
 

@@ -59,8 +59,12 @@ def mechanism(independent=None) -> Mechanism:
     """The knife edge; `independent`: fixed independent velocities, or None (default) for
     the automatic choice that changes during the run (see the module note)."""
     return Mechanism(
-        kinetic, constraints=constraint, potential=potential, acceleration_energy=acceleration_energy,
-        names=("x", "y", "phi"), independent=independent,
+        kinetic,
+        constraints=constraint,
+        potential=potential,
+        acceleration_energy=acceleration_energy,
+        names=("x", "y", "phi"),
+        independent=independent,
     )
 
 

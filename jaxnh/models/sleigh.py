@@ -64,8 +64,11 @@ def mechanism() -> Mechanism:
     """The sleigh: T from the rigid-body helper, S too; ẋ and θ̇ independent."""
     b = bodies()
     return Mechanism(
-        b.kinetic, constraints=knife_edge, acceleration_energy=b.acceleration_energy,
-        names=("x", "y", "theta"), independent=(0, 2),
+        b.kinetic,
+        constraints=knife_edge,
+        acceleration_energy=b.acceleration_energy,
+        names=("x", "y", "theta"),
+        independent=(0, 2),
     )
 
 

@@ -35,8 +35,13 @@ from ..profiles import Constant, Fourier, Profile
 
 
 __all__ = [
-    "VariatorParams", "mechanism", "default_params", "closed_form",
-    "paper_eq9", "paper_eq16", "paper_multiplier",
+    "VariatorParams",
+    "mechanism",
+    "default_params",
+    "closed_form",
+    "paper_eq9",
+    "paper_eq16",
+    "paper_multiplier",
 ]
 
 
@@ -105,9 +110,7 @@ def mechanism(acceleration_energy_given: bool = False) -> Mechanism:
 def default_params() -> VariatorParams:
     """A small laboratory variator: J1 = 0.02, J2 = 0.05 kg·m², U21 between
     0.6 and 1.4 with a 2 s period, motor torque 0.3 N·m, load −0.1 N·m."""
-    return VariatorParams(
-        J1=0.02, J2=0.05, U21=Fourier(1.0, cos=[0.0], sin=[0.4], period=2.0), M1=0.3, M2=-0.1
-    )
+    return VariatorParams(J1=0.02, J2=0.05, U21=Fourier(1.0, cos=[0.0], sin=[0.4], period=2.0), M1=0.3, M2=-0.1)
 
 
 # --- the paper's equations, by hand, as references ----------------------------
