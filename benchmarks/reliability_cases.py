@@ -1,0 +1,1290 @@
+"""Case generators and the oracle of jaxnh's reliability checks (issue 15, "no silent wrong answers").
+
+Shared by the fuzz suite (tests/test_fuzz.py), the gradient-check matrix
+(tests/test_gradient_matrix.py) and the reliability report
+(`python -m benchmarks.reliability`, which writes benchmarks/RELIABILITY.md):
+the tests run few examples of each class, the report many.
+
+Every call made here ends in one of five outcomes:
+
+* **right** — a success whose values (and gradient, where one is taken) agree
+  with an independent reference: the same mechanics written out by hand in
+  NumPy (mass matrix, constraint Jacobian, Chetaev constraint forces, the
+  index-reduced equations `M q̈ = Q + Aᵀλ, A q̈ + ∂c/∂t = 0` solved by least
+  squares) and integrated by SciPy (DOP853 at rtol 1e-12), or a closed form;
+* **clear error** — an exception whose message names the offending argument;
+* **failure status** — `sol.status` not success, with a message, and values
+  that are not a plausible answer (NaN/inf); under `jit` with `throw=True`,
+  the in-graph error carrying that message;
+* **unclear error** — an exception that does not say which argument is wrong;
+* **silent wrong** — success with a wrong answer (or success on an input that
+  has no right answer). The suite fails on it.
+
+Compilation dominates the cost, so each family is ONE mechanism whose every
+number is a traced parameter: cases vary values, never the structure, and
+reuse the compiled programs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from typing import Any, Callable, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import strategies as st
+from scipy.integrate import solve_ivp
+
+import jaxnh as nh
+from jaxnh._status import STATUS
+
+RIGHT, CLEAR_ERROR, FAILURE, UNCLEAR_ERROR, SILENT_WRONG = (
+    "right", "clear error", "failure status", "unclear error", "silent wrong")
+OUTCOMES = (RIGHT, CLEAR_ERROR, FAILURE, UNCLEAR_ERROR, SILENT_WRONG)
+
+MOTION_RTOL = 1e-5
+MOTION_ATOL = 1e-7
+"""A success is right when every coordinate and velocity is within
+MOTION_RTOL × its own scale + MOTION_ATOL of the reference (the scale of q_i is
+max |q_i| plus the span times max |q̇_i| over the run, that of q̇_i max |q̇_i| plus
+its largest change between reports). These are 1000 × the library's default
+rtol = 1e-8 and atol = 1e-10: the step control bounds each step's error by
+rtol·|y| + atol, and over the ≤ 1000 steps of these runs the global error stays
+well inside 1000 × that (measured on the valid classes: at most ≈ 3e-7 of the
+scale, benchmarks/RELIABILITY.md, "largest error of a right answer"). Wrong
+mechanics (a missed constraint force, the substituted method's doubled velocity
+term, a wrong dependent velocity) are off by 1e-3 or more on these runs. The
+absolute part matters for motions at tiny scales (1e-300..1e-6), where the
+library promises atol, not rtol."""
+
+GRAD_RTOL = 1e-4
+"""A gradient is right when its derivative along a random direction v agrees with
+the central difference of the reference, `|g·v − fd| ≤ GRAD_RTOL (|fd| + Σ|g_i v_i|)`.
+The difference quotient has step 1e-4 relative: truncation ≈ (1e-4)² and the
+reference's noise ≈ 1e-12/1e-4 = 1e-8; the default forward sensitivities are
+error-controlled at rtol 1e-8 (measured errors ≤ 1e-6 relative)."""
+
+LIN_RTOL = 1e-7
+"""A linearisation is right when every entry of A is within LIN_RTOL·max(1, max|A|)
+of the reference, the complex-step derivative of the reference's reduced vector
+field (exact to rounding). The library's forward-mode derivatives are exact to
+rounding too: on every class with linear constraints the two agree to ≤ 6e-16.
+The library treats a constraint as linear when its second difference is within
+1e-8 of its scale, so an undeclared nonlinearity below that may shift the
+linearisation by about as much (measured up to 6.5e-10); 1e-7 allows 10× the
+threshold. A wrong linearisation (a missing term, a wrong dependent velocity) is
+off by 1e-3 or more."""
+
+
+@dataclasses.dataclass
+class Outcome:
+    kind: str
+    detail: str = ""
+    error: float = math.nan  # for a checked answer: its error (relative to the scale used by the check)
+
+    @property
+    def bad(self) -> bool:
+        """Whether this outcome must fail the suite."""
+        return self.kind in (SILENT_WRONG, UNCLEAR_ERROR)
+
+
+# =====================================================================================
+# The "shafts" family: s = 3 coordinates, m = 1 nonholonomic constraint
+# =====================================================================================
+#
+# Two shafts (phi1, phi2) coupled by a friction roller with the ratio
+#   R(t) = U + dU tanh(k (t − tsw))      (a smooth ratio change; steep for large k)
+# and a third shaft phi3 on a spring; the rolling constraint
+#   c = R(t) phi1' + a1 phi2' + a2 phi3' + b sin(w t) + nl phi1'²
+# (rheonomic for b ≠ 0, nonlinear for nl ≠ 0, velocity-free for R = a1 = a2 = 0),
+# kinetic energy T = ½ (J1 phi1'² + J2 phi2'² + J3 phi3'²) + K phi1' phi2'
+# (not positive definite for K² ≥ J1 J2 or a J ≤ 0), and torques
+#   Q_i = M_i − c_i phi_i' (− s3 phi3 for the third).
+
+SHAFTS_KEYS = ("J1", "J2", "J3", "K", "U", "dU", "k", "tsw", "a1", "a2", "b", "w", "nl",
+               "M1", "M2", "M3", "c1", "c2", "c3", "s3")
+SHAFTS_BASE = dict(J1=0.02, J2=0.05, J3=0.03, K=0.0, U=1.2, dU=0.0, k=1.0, tsw=1.0, a1=-1.0, a2=0.0, b=0.0,
+                   w=1.0, nl=0.0, M1=0.3, M2=-0.1, M3=0.05, c1=0.0, c2=0.0, c3=0.0, s3=0.0)
+THETA = ("J2", "c1")
+"""The parameters differentiated in the gradient checks (the others are held fixed): an inertia and
+a damping coefficient, those of the gradient-check matrix. Each differentiated parameter adds its
+sensitivities to the error control and so changes the steps: the matrix must differentiate only
+what a user asking for ∂/∂c and ∂/∂J2 would."""
+W_Q = (1.0, 0.5, 0.3)
+W_QD = (0.2, -0.1, 0.1)
+"""The differentiated scalar: L = W_Q · q(t_end) + W_QD · q̇(t_end) (the weights are data: the
+gradient-check matrix differentiates phi1(t_end) with the same program)."""
+BATCH = 10
+"""Cases per call of the batched program (its batch size is part of its shape: one compile)."""
+N_TS = 9
+
+
+def ratio(t, p, xp=jnp):
+    return p["U"] + p["dU"] * xp.tanh(p["k"] * (t - p["tsw"]))
+
+
+def shafts_kinetic(q, qd, t, p):
+    return 0.5 * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2 + p["J3"] * qd[2] ** 2) + p["K"] * qd[0] * qd[1]
+
+
+def shafts_constraint(q, qd, t, p):
+    return jnp.stack([ratio(t, p) * qd[0] + p["a1"] * qd[1] + p["a2"] * qd[2] + p["b"] * jnp.sin(p["w"] * t)
+                      + p["nl"] * qd[0] ** 2])
+
+
+def shafts_forces(q, qd, t, p):
+    return jnp.stack([p["M1"] - p["c1"] * qd[0], p["M2"] - p["c2"] * qd[1], p["M3"] - p["c3"] * qd[2] - p["s3"] * q[2]])
+
+
+SHAFTS = nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, forces=shafts_forces,
+                      names=("phi1", "phi2", "phi3"))
+
+
+def shafts_qd0(p, w0, v3, t0, xp=jnp):
+    """Velocities meeting the constraint at t0: phi1' = w0, phi3' = v3, phi2' solved (0 when a1 = 0)."""
+    rest = ratio(t0, p, xp) * w0 + p["a2"] * v3 + p["b"] * xp.sin(p["w"] * t0) + p["nl"] * w0 ** 2
+    a1 = p["a1"]
+    safe = xp.where(a1 != 0, a1, 1.0)
+    return xp.stack([w0 + 0.0 * a1, xp.where(a1 != 0, -rest / safe, 0.0), v3 + 0.0 * a1])
+
+
+class ShaftsModel:
+    """The shafts family written out by hand in NumPy (the reference's equations)."""
+
+    s, m = 3, 1
+
+    @staticmethod
+    def mass(q, t, p):
+        M = np.diag([p["J1"], p["J2"], p["J3"]]).astype(float)
+        M[0, 1] = M[1, 0] = p["K"]
+        return M
+
+    @staticmethod
+    def jac(q, qd, t, p):
+        return np.array([[ratio(t, p, np) + 2 * p["nl"] * qd[0], p["a1"] + 0 * qd[0], p["a2"] + 0 * qd[0]]])
+
+    @staticmethod
+    def value(q, qd, t, p):
+        return np.array([ratio(t, p, np) * qd[0] + p["a1"] * qd[1] + p["a2"] * qd[2] + p["b"] * np.sin(p["w"] * t)
+                         + p["nl"] * qd[0] ** 2])
+
+    @staticmethod
+    def dt(q, qd, t, p):
+        """∂c/∂t at fixed (q, qd)."""
+        dR = p["dU"] * p["k"] * (1 - np.tanh(p["k"] * (t - p["tsw"])) ** 2)
+        return np.array([dR * qd[0] + p["b"] * p["w"] * np.cos(p["w"] * t)])
+
+    @staticmethod
+    def forces(q, qd, t, p):
+        return np.array([p["M1"] - p["c1"] * qd[0], p["M2"] - p["c2"] * qd[1], p["M3"] - p["c3"] * qd[2] - p["s3"] * q[2]])
+
+
+# =====================================================================================
+# The "locked" family: s = 2, m = 2 (no degree of freedom left; redundant when the rows are parallel)
+# =====================================================================================
+
+LOCKED_BASE = dict(J1=1.0, J2=2.0, A00=1.0, A01=-1.0, A10=0.0, A11=1.0, b0=1.0, b1=0.5, e0=-1.0, e1=-0.5)
+
+
+def locked_kinetic(q, qd, t, p):
+    return 0.5 * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2)
+
+
+def locked_constraint(q, qd, t, p):
+    return jnp.stack([p["A00"] * qd[0] + p["A01"] * qd[1] + p["b0"] * jnp.sin(t) + p["e0"],
+                      p["A10"] * qd[0] + p["A11"] * qd[1] + p["b1"] * jnp.sin(t) + p["e1"]])
+
+
+LOCKED = nh.Mechanism(locked_kinetic, constraints=locked_constraint, names=("x1", "x2"))
+
+
+class LockedModel:
+    s, m = 2, 2
+
+    @staticmethod
+    def mass(q, t, p):
+        return np.diag([p["J1"], p["J2"]]).astype(float)
+
+    @staticmethod
+    def jac(q, qd, t, p):
+        return np.array([[p["A00"], p["A01"]], [p["A10"], p["A11"]]], float)
+
+    @staticmethod
+    def value(q, qd, t, p):
+        return LockedModel.jac(q, qd, t, p) @ qd + np.array([p["b0"], p["b1"]]) * np.sin(t) + np.array([p["e0"], p["e1"]])
+
+    @staticmethod
+    def dt(q, qd, t, p):
+        return np.array([p["b0"], p["b1"]]) * np.cos(t)
+
+    @staticmethod
+    def forces(q, qd, t, p):
+        return np.zeros(2)
+
+
+MODELS = {"shafts": ShaftsModel, "locked": LockedModel}
+MECHS = {"shafts": SHAFTS, "locked": LOCKED}
+
+
+# =====================================================================================
+# The reference: index-reduced equations, least squares, SciPy
+# =====================================================================================
+
+
+def ref_accelerations(model, q, qd, t, p, solve=None):
+    """q̈ from `M q̈ − Aᵀλ = Q, A q̈ = −∂c/∂t` (A = ∂c/∂q̇; constraints here do not depend on q),
+    by least squares, so that redundant constraints (a singular KKT matrix) are handled; `solve`
+    replaces it (np.linalg.solve for complex-step derivatives, which least squares would break)."""
+    M, A = model.mass(q, t, p), model.jac(q, qd, t, p)
+    m = A.shape[0]
+    kkt = np.block([[M, -A.T], [A, np.zeros((m, m))]])
+    rhs = np.concatenate([model.forces(q, qd, t, p), -model.dt(q, qd, t, p)])
+    if solve is not None:
+        return solve(kkt, rhs)[: model.s]
+    return np.linalg.lstsq(kkt, rhs, rcond=None)[0][: model.s]
+
+
+def ref_project(model, q, qd, t, p, iterations: int = 6):
+    """The velocities nearest to qd in the kinetic-energy metric that meet the constraints
+    (Gauss–Newton; one step for linear constraints).
+
+    Each step solves `A δ = −c` through the SVD of A, keeping singular values above 1e-14
+    of the largest (exactly redundant rows get the least-squares correction, nearly
+    redundant ones the exact one, accurate to about cond(A)·eps), then minimises
+    δᵀ M δ over the null space of A; no product like A M⁻¹ Aᵀ squares the conditioning."""
+    M = model.mass(q, t, p)
+    qd = np.array(qd, float)
+    for _ in range(iterations):
+        A, c = model.jac(q, qd, t, p), model.value(q, qd, t, p)
+        U, S, Vt = np.linalg.svd(A)
+        r = int(np.sum(S > 1e-14 * S[0])) if S.size and S[0] > 0 else 0
+        d = Vt[:r].T @ ((U[:, :r].T @ -c) / S[:r])
+        N = Vt[r:].T
+        if N.shape[1]:
+            d = d - N @ np.linalg.solve(N.T @ M @ N, N.T @ M @ d)
+        qd = qd + d
+    return qd
+
+
+def ref_motion(model, p, q0, qd0, ts, rtol: float = 1e-12):
+    """(q, q̇) at ts from (q0, q̇0), SciPy DOP853 at rtol; None if the integration failed.
+
+    The KKT system is solved by LU when it is regular at the start (condition number below
+    1e12), else by least squares (redundant constraints)."""
+    s = model.s
+    ts = np.asarray(ts, float)
+    y0 = np.concatenate([np.asarray(q0, float), np.asarray(qd0, float)])
+    M, A = model.mass(y0[:s], ts[0], p), model.jac(y0[:s], y0[s:], ts[0], p)
+    kkt = np.block([[M, -A.T], [A, np.zeros((A.shape[0],) * 2)]])
+    with np.errstate(all="ignore"):
+        regular = bool(np.all(np.isfinite(kkt))) and np.linalg.cond(kkt) < 1e12
+    solve = np.linalg.solve if regular else None
+
+    def f(t, y):
+        return np.concatenate([y[s:], ref_accelerations(model, y[:s], y[s:], t, p, solve=solve)])
+
+    scale = np.max(np.abs(y0)) + np.max(np.abs(f(ts[0], y0))) * (ts[-1] - ts[0]) + 1e-300
+    try:
+        with np.errstate(all="ignore"):
+            sol = solve_ivp(f, (ts[0], ts[-1]), y0, method="DOP853", t_eval=ts, rtol=rtol, atol=rtol * 1e-3 * scale)
+    except np.linalg.LinAlgError:
+        return None
+    if sol.status != 0 or sol.y.shape[1] != ts.shape[0] or not np.all(np.isfinite(sol.y)):
+        return None
+    return sol.y[:s].T, sol.y[s:].T
+
+
+def motion_error(q, qd, ref, ts, rtol: float = MOTION_RTOL, atol: float = MOTION_ATOL):
+    """Largest error of (q, q̇) against the reference, in units of the allowed error
+    (rtol × each component's scale + atol): ≤ 1 is right."""
+    q_ref, qd_ref = ref
+    span = float(ts[-1] - ts[0])
+    sq = np.max(np.abs(q_ref), axis=0) + span * np.max(np.abs(qd_ref), axis=0)
+    sqd = np.max(np.abs(qd_ref), axis=0) + np.max(np.abs(np.diff(qd_ref, axis=0)), axis=0, initial=0.0)
+    eq = np.abs(np.asarray(q) - q_ref) / (rtol * sq + atol)
+    eqd = np.abs(np.asarray(qd) - qd_ref) / (rtol * sqd + atol)
+    with np.errstate(invalid="ignore"):
+        return float(np.nan_to_num(max(np.max(eq), np.max(eqd)), nan=np.inf))
+
+
+def ref_reduced_field(model, p, q, v, t, speeds):
+    """(q̇, v̇) of the reduced state (q, v = q̇[speeds]): dependent velocities from the constraints.
+    Complex arguments carry a complex step through it (every operation is analytic)."""
+    s = model.s
+    dep = [i for i in range(s) if i not in speeds]
+    qd = np.zeros(s, dtype=np.result_type(q, v))
+    qd[list(speeds)] = v
+    for _ in range(8):  # Newton on the dependent velocities (one step for linear constraints)
+        A, c = model.jac(q, qd, t, p), model.value(q, qd, t, p)
+        qd[dep] -= np.linalg.solve(A[:, dep], c)
+    return qd, ref_accelerations(model, q, qd, t, p, solve=np.linalg.solve)[list(speeds)]
+
+
+def ref_linearization(model, p, q, qd, t, speeds, h: float = 1e-30):
+    """The state matrix for x = (q, v) by complex-step differentiation of the reference's reduced
+    field, ∂g/∂x_j = Im g(x + i h e_j) / h: exact to rounding (no difference is taken)."""
+    s = model.s
+    x0 = np.concatenate([np.asarray(q, float), np.asarray(qd, float)[list(speeds)]])
+
+    def g(x):
+        qd_, vd = ref_reduced_field(model, p, x[:s], x[s:], t, speeds)
+        return np.concatenate([qd_, vd])
+
+    cols = []
+    for j in range(x0.size):
+        x = x0.astype(complex)
+        x[j] += 1j * h
+        cols.append(np.imag(g(x)) / h)
+    return np.stack(cols, axis=1)
+
+
+# =====================================================================================
+# Cases
+# =====================================================================================
+
+
+@dataclasses.dataclass
+class Case:
+    """One call and what a right answer is.
+
+    `valid`: whether the input has a right answer (a reference); on an input
+    without one, a success is silent wrong. `names`: regex an error message
+    must match to be a clear error (the argument or function at fault).
+    `known`: the name of a known library issue this case exposes (the tests
+    mark those xfail; the report lists them).
+    """
+
+    cls: str
+    family: str = "shafts"
+    params: Any = None
+    q0: Any = None
+    qd0: Any = None
+    ts: Any = None
+    kw: dict = dataclasses.field(default_factory=dict)
+    names: str = r"$^"
+    valid: bool = True
+    what: str = ""
+    known: str = ""
+    mech: Any = None  # overrides MECHS[family] (for cases about the Mechanism itself)
+    new_program: bool = False  # the call compiles a program of its own (slow tier in the tests)
+    # the batchable description (shafts value cases): theta, rest, w0, v3, delta
+    theta: Any = None
+    rest: Any = None
+    w0: float = 0.0
+    v3: float = 0.0
+    delta: Any = None
+
+    def reference(self):
+        """(q, q̇) of the right answer, or None when there is none."""
+        if not self.valid:
+            return None
+        model = MODELS[self.family]
+        p = {k: float(v) for k, v in self.params.items()}
+        q0, qd0, ts = (np.asarray(x, float) for x in (self.q0, self.qd0, self.ts))
+        try:
+            qd0c = ref_project(model, q0, qd0, ts[0], p)
+        except np.linalg.LinAlgError:
+            return None
+        return ref_motion(model, p, q0, qd0c, ts)
+
+
+def _f(x):
+    return float(x)
+
+
+def value_case(cls, theta, rest, w0, v3, delta, q0, ts, *, what="", valid=True, known="", names=r"$^"):
+    """A shafts case given by values (batchable under vmap, differentiable in theta)."""
+    p = {**rest, **theta}
+    qd0 = np.asarray(shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3),
+                                np.float64(ts[0]), np), float) + np.asarray(delta, float)
+    return Case(cls, "shafts", params=p, q0=np.asarray(q0, float), qd0=qd0, ts=np.asarray(ts, float), what=what,
+                valid=valid, known=known, names=names, theta=dict(theta), rest=dict(rest), w0=w0, v3=v3,
+                delta=np.asarray(delta, float))
+
+
+# --- strategies ------------------------------------------------------------------------
+
+
+def logu(lo, hi):
+    """Log-uniform floats in [lo, hi] (lo > 0)."""
+    return st.floats(math.log10(lo), math.log10(hi)).map(lambda e: 10.0 ** e)
+
+
+def signed(lo, hi):
+    """Floats of either sign with magnitude in [lo, hi] (lo > 0: hypothesis's simplest example is
+    lo, never a degenerate zero)."""
+    return st.tuples(st.sampled_from([1.0, -1.0]), st.floats(lo, hi)).map(lambda x: x[0] * x[1])
+
+
+@st.composite
+def report_times(draw, n=N_TS):
+    t0 = draw(st.floats(-1.0, 1.0))
+    span = draw(st.floats(0.5, 3.0))
+    gaps = np.asarray(draw(st.lists(st.floats(0.2, 1.0), min_size=n - 1, max_size=n - 1)))
+    return t0 + span * np.concatenate([[0.0], np.cumsum(gaps) / np.sum(gaps)])
+
+
+@st.composite
+def physical(draw):
+    """A valid shafts case: positive inertias, |K| well below √(J1 J2), a regular constraint, and
+    nothing degenerate (speeds, torques and start of both signs, bounded away from zero)."""
+    J = [draw(logu(1e-3, 1.0)) for _ in range(3)]
+    p = dict(SHAFTS_BASE)
+    p.update(J1=J[0], J2=J[1], J3=J[2], K=draw(st.floats(-0.5, 0.5)) * math.sqrt(J[0] * J[1]),
+             U=draw(signed(0.3, 3.0)), dU=draw(st.floats(0.0, 0.2)), k=draw(logu(0.1, 20.0)),
+             tsw=draw(st.floats(-1.0, 3.0)), a1=-draw(st.floats(0.5, 2.0)),
+             a2=draw(st.sampled_from([0.0, 0.0, 1.0])) * draw(st.floats(-0.5, 0.5)),
+             b=draw(st.sampled_from([0.0, 1.0])) * draw(st.floats(-1.0, 1.0)), w=draw(st.floats(0.5, 4.0)),
+             M1=draw(signed(0.05, 1.0)), M2=draw(signed(0.05, 1.0)), M3=draw(signed(0.05, 1.0)),
+             s3=draw(st.floats(0.0, 2.0)))
+    for i, Ji in zip((1, 2, 3), J):  # viscous damping up to 20/s (rate c_i/J_i): not stiff for Tsit5 at rtol 1e-8
+        p[f"c{i}"] = Ji * draw(st.floats(0.0, 20.0))
+    w0 = draw(signed(0.3, 3.0))
+    v3 = draw(signed(0.3, 3.0))
+    q0 = np.asarray([draw(signed(0.1, 2.0)) for _ in range(3)])
+    ts = draw(report_times())
+    return p, w0, v3, q0, ts
+
+
+def split(p):
+    return {k: p[k] for k in THETA}, {k: p[k] for k in SHAFTS_KEYS if k not in THETA}
+
+
+VALUE_CLASSES = (
+    "valid", "tiny velocities", "steep ratio step", "non-finite value", "inertia not positive",
+    "singular mass matrix", "velocity-free constraint", "undeclared nonlinear constraint", "inconsistent qd0",
+    "report times not increasing",
+)
+"""Classes of the shafts family that vary values only: eager, jit, vmap and grad all run them."""
+
+
+@st.composite
+def value_cases(draw, cls=None):
+    """One shafts case of a value class (drawn when cls is None)."""
+    cls = draw(st.sampled_from(VALUE_CLASSES)) if cls is None else cls
+    p, w0, v3, q0, ts = draw(physical())
+    delta = np.zeros(3)
+    valid, what, known = True, "", ""
+    if cls == "valid":
+        what = "random inertias, coupling, ratio law, rheonomic term, damping, spring, torques, start, report times"
+    elif cls == "tiny velocities":
+        scale = draw(logu(1e-300, 1e-6))
+        w0, v3 = w0 * scale, v3 * scale
+        p.update(M1=p["M1"] * scale, M2=p["M2"] * scale, M3=p["M3"] * scale, b=p["b"] * scale)
+        q0 = q0 * scale
+        what = "velocities, torques, rheonomic term and start scaled by 1e-300..1e-6"
+    elif cls == "steep ratio step":
+        p.update(dU=draw(st.floats(0.1, 0.5)) * abs(p["U"]), k=draw(logu(20.0, 1e4)),
+                 tsw=float(ts[0] + draw(st.floats(0.05, 0.95)) * (ts[-1] - ts[0])))
+        what = "ratio step U ± dU tanh(k (t − tsw)), k = 20..1e4 /s, inside the run"
+    elif cls == "non-finite value":
+        bad = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+        where = draw(st.sampled_from(["param", "q0", "w0", "v3", "ts"]))
+        if where == "param":
+            p[draw(st.sampled_from(SHAFTS_KEYS))] = bad
+        elif where == "q0":
+            q0 = q0.copy()
+            q0[draw(st.integers(0, 2))] = bad
+        elif where == "w0":
+            w0 = bad
+        elif where == "v3":
+            v3 = bad
+        else:
+            ts = ts.copy()
+            ts[draw(st.integers(0, N_TS - 1))] = bad
+        valid = False
+        what = "NaN or ±inf in one parameter, q0, qd0 or ts"
+    elif cls == "inertia not positive":
+        i = draw(st.integers(1, 3))
+        p[f"J{i}"] = -draw(st.sampled_from([0.0, 1.0])) * draw(logu(1e-6, 1.0))
+        valid = False
+        what = "one inertia J_i ≤ 0"
+    elif cls == "singular mass matrix":
+        dlt = draw(st.sampled_from([0.0, 0.0, 1.0])) * draw(logu(1e-16, 1e-6))
+        p["K"] = draw(st.sampled_from([1.0, -1.0])) * math.sqrt(p["J1"] * p["J2"] * (1 - dlt))
+        valid = dlt > 0  # nearly singular but positive definite: a right answer exists
+        what = "coupling K² = J1 J2 (1 − δ), δ = 0 or 1e-16..1e-6"
+    elif cls == "velocity-free constraint":
+        p.update(U=0.0, dU=0.0, a1=0.0, a2=0.0)
+        valid = False
+        what = "every velocity coefficient of the constraint zero (a holonomic constraint passed as nonholonomic)"
+    elif cls == "undeclared nonlinear constraint":
+        p["nl"] = draw(st.sampled_from([1.0, -1.0])) * draw(logu(1e-14, 1.0))
+        what = "c + nl·phi1'², nl = 1e-14..1, without nonlinear_constraints=True"
+    elif cls == "inconsistent qd0":
+        kind = draw(st.sampled_from(["relative", "tiny scale", "large other velocity"]))
+        eps = draw(logu(1e-12, 1.0))
+        if kind == "tiny scale":
+            scale = draw(logu(1e-300, 1e-8))
+            w0, v3 = w0 * scale, v3 * scale
+            p["b"] = p["b"] * scale
+        elif kind == "large other velocity":
+            v3 = draw(st.sampled_from([1.0, -1.0])) * draw(logu(1e2, 1e8))
+            p["a2"] = 0.0
+            eps = draw(logu(1e-9, 1e-2))
+            known = "large-other-velocity-hides-violation"
+        qd_ok = np.asarray(shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3),
+                                      np.float64(ts[0]), np))
+        delta = np.array([0.0, eps * (abs(qd_ok[1]) + abs(w0) * abs(ratio(ts[0], p, np))) + 1e-300 * (w0 == 0), 0.0])
+        what = ("phi2'(t0) off the constraint by a fraction 1e-12..1 of its size; at tiny scale (1e-300..1e-8); "
+                "or with a large unconstrained phi3' (1e2..1e8)")
+    elif cls == "report times not increasing":
+        ts = ts.copy()
+        i = draw(st.integers(1, N_TS - 1))
+        how = draw(st.sampled_from(["repeat", "swap", "reverse"]))
+        if how == "repeat":
+            ts[i] = ts[i - 1]
+        elif how == "swap":
+            ts[i - 1], ts[i] = ts[i], ts[i - 1]
+        else:
+            ts = ts[::-1].copy()
+        valid = False
+        what = "a repeated time, two swapped, or all reversed"
+    theta, rest = split(p)
+    return value_case(cls, theta, rest, w0, v3, delta, q0, ts, what=what, valid=valid, known=known)
+
+
+# --- structural and option classes (eager and jit only: errors before any compile) -------
+
+STRUCTURAL_CLASSES = ("wrong shape", "wrong dtype", "bad option", "bad mechanism")
+
+
+def _ok_inputs():
+    p = dict(SHAFTS_BASE)
+    ts = np.linspace(0.0, 1.0, N_TS)
+    qd0 = np.asarray(shafts_qd0({k: np.float64(v) for k, v in p.items()}, 1.0, 0.5, 0.0, np))
+    return p, np.zeros(3), qd0, ts
+
+
+def _int_T(q, qd, t, p):
+    return jnp.sum(jnp.ones(3, dtype=jnp.int32))
+
+
+def _vector_T(q, qd, t, p):
+    return 0.5 * p["J1"] * qd ** 2
+
+
+def _three_constraints(q, qd, t, p):
+    return jnp.stack([qd[0], qd[1], qd[2], qd[0] + qd[1]])
+
+
+def _bad_forces(q, qd, t, p):
+    return jnp.stack([p["M1"], p["M2"]])
+
+
+def structural_table():
+    """Every structural and option case: (class, label, case). Deterministic (no draws)."""
+    p, q0, qd0, ts = _ok_inputs()
+    out = []
+
+    def add(cls, label, names, valid=False, known="", mech=None, new_program=False, **kw):
+        base = dict(params=p, q0=q0, qd0=qd0, ts=ts)
+        call = {k: kw.pop(k) for k in list(kw) if k in base}
+        base.update(call)
+        out.append((cls, label, Case(cls, "shafts", names=names, valid=valid, known=known, mech=mech, kw=kw,
+                                     what=label, new_program=new_program, **base)))
+
+    Q = r"\bq0?\b|\bqd0?\b"
+    # wrong shapes
+    add("wrong shape", "q0 of 4 coordinates", Q, q0=np.zeros(4))
+    add("wrong shape", "q0 of shape (3, 1)", Q, q0=np.zeros((3, 1)))
+    add("wrong shape", "scalar q0", Q, q0=np.float64(0.0))
+    add("wrong shape", "qd0 of 2 entries", Q, qd0=qd0[:2])
+    add("wrong shape", "ts 2-D", r"\bts\b", ts=ts[:, None])
+    add("wrong shape", "ts of one time", r"\bts\b", ts=ts[:1])
+    add("wrong shape", "empty ts", r"\bts\b", ts=ts[:0])
+    add("wrong shape", "a parameter of shape (2,)", r"kinetic|params", params={**p, "J1": np.array([0.02, 0.03])})
+    add("wrong shape", "a parameter missing", r"kinetic|constraints|forces|'J2'|J2",
+        params={k: v for k, v in p.items() if k != "J2"})
+    # wrong dtypes
+    add("wrong dtype", "integer q0 (valid: taken as float)", Q, q0=np.zeros(3, dtype=np.int64), valid=True,
+        new_program=True)
+    add("wrong dtype", "integer ts (valid: taken as float)", r"\bts\b", ts=np.arange(N_TS), valid=True,
+        new_program=True)
+    add("wrong dtype", "integer-valued parameter (valid)", r"$^", params={**p, "J3": 1}, valid=True,
+        new_program=True)
+    add("wrong dtype", "float32 q0 with the default rtol 1e-8 (below float32's resolution)", r"rtol|float32",
+        q0=np.zeros(3, dtype=np.float32))
+    add("wrong dtype", "float32 q0, qd0, ts with rtol=1e-5 (valid)", r"$^", q0=np.zeros(3, dtype=np.float32),
+        qd0=qd0.astype(np.float32), ts=ts.astype(np.float32), rtol=1e-5, atol=1e-7, valid=True, new_program=True)
+    add("wrong dtype", "complex q0", Q + r"|complex|dtype", q0=np.array([0.1 + 0.5j, 0.0, 0.0]),
+        known="complex-input-truncated", new_program=True)
+    add("wrong dtype", "complex qd0", Q + r"|complex|dtype", qd0=qd0 + np.array([0.0, 0.0, 0.3j]),
+        known="complex-input-truncated", new_program=True)
+    add("wrong dtype", "complex ts", r"\bts\b|complex|dtype", ts=ts + 0.1j, known="complex-input-truncated",
+        new_program=True)
+    add("wrong dtype", "complex parameter", r"params|J1", params={**p, "J1": 0.02 + 0.01j},
+        known="complex-parameter-unclear")
+    add("wrong dtype", "string q0", Q, q0="0 0 0", known="string-input-unclear")
+    add("wrong dtype", "string parameter", r"params|J1|kinetic", params={**p, "J1": "0.02"})
+    add("wrong dtype", "boolean q0 (taken as 0/1)", Q, q0=np.array([True, False, False]), valid=True,
+        new_program=True)
+    add("wrong dtype", "object array ts", r"\bts\b", ts=np.array(list(ts) + [None])[:-1].astype(object),
+        valid=True)
+    # options
+    for v in (-1.0, math.nan, "1e-8", None, 1e-20):
+        known = "string-tolerance-unclear" if isinstance(v, str) or v is None else ""
+        add("bad option", f"rtol={v!r}", r"rtol", rtol=v, known=known)
+    for v in (-1e-10, math.nan, "0"):
+        add("bad option", f"atol={v!r}", r"atol", atol=v, known="string-tolerance-unclear" if isinstance(v, str) else "")
+    for v in (-0.1, 0.0, math.nan, "0.1"):
+        add("bad option", f"dt0={v!r}", r"dt0", dt0=v, known="string-dt0-unclear" if isinstance(v, str) else "")
+    for v in (0, -5, 2.5, "100", None):
+        add("bad option", f"max_steps={v!r}", r"max_steps", max_steps=v)
+    for v in ("tsit5", "Kvaerno5", 5):
+        add("bad option", f"solver={v!r}", r"solver", solver=v)
+    import diffrax
+
+    add("bad option", "solver=diffrax.Tsit5 (the class, not an instance)", r"solver", solver=diffrax.Tsit5)
+    for v in ("euler", "Appell", None, 3):
+        add("bad option", f"method={v!r}", r"method", method=v)
+    add("bad option", "record='forces'", r"record", record="forces")
+    add("bad option", "stabilization='baumgarte' with method='appell'", r"stabilization", stabilization="baumgarte")
+    add("bad option", "stabilization='projections'", r"stabilization", method="lagrange", stabilization="projections")
+    add("bad option", "independent=(0, 0) (repeated)", r"independent", independent=(0, 0))
+    add("bad option", "independent=(5, 0)", r"independent", independent=(5, 0))
+    add("bad option", "baumgarte_rate without stabilization", r"baumgarte", method="lagrange", baumgarte_rate=2.0)
+    # options that are accepted and compile a program of their own
+    add("bad option", "atol=inf (error control off)", r"atol", atol=math.inf, known="atol-inf-accepted",
+        new_program=True)
+    add("bad option", "rtol=inf", r"rtol", rtol=math.inf, new_program=True)
+    add("bad option", "max_steps=3 (valid: too few steps)", r"max_steps", max_steps=3, new_program=True)
+    add("bad option", "dt0=inf", r"dt0", dt0=math.inf, valid=True, new_program=True)
+    # mechanisms
+    add("bad mechanism", "integer-valued T", r"kinetic", mech=nh.Mechanism(_int_T, constraints=shafts_constraint))
+    add("bad mechanism", "T returns a vector", r"kinetic", mech=nh.Mechanism(_vector_T, constraints=shafts_constraint))
+    add("bad mechanism", "m = 4 > s = 3", r"constraints|m=4|m ≤ s",
+        mech=nh.Mechanism(shafts_kinetic, constraints=_three_constraints))
+    add("bad mechanism", "forces of the wrong length", r"forces",
+        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, forces=_bad_forces))
+    add("bad mechanism", "names of the wrong length", r"names",
+        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, names=("a", "b")))
+    return out
+
+
+MECHANISM_CONSTRUCTION = (
+    ("kinetic=None", lambda: nh.Mechanism(None), r"kinetic"),
+    ("kinetic=0.5 (a number)", lambda: nh.Mechanism(0.5), r"kinetic"),
+    ("constraints='rolling' (a string)", lambda: nh.Mechanism(shafts_kinetic, constraints="rolling"), r"constraints"),
+    ("forces=[...] (a list)", lambda: nh.Mechanism(shafts_kinetic, forces=[0.0, 1.0]), r"forces"),
+    ("holonomic=1.0", lambda: nh.Mechanism(shafts_kinetic, holonomic=1.0), r"holonomic"),
+    ("names=(1, 2, 3)", lambda: nh.Mechanism(shafts_kinetic, names=(1, 2, 3)), r"names"),
+)
+"""`Mechanism(...)` itself with bad arguments: each must raise naming the argument."""
+
+
+# --- the locked family (m = s, redundant, near-redundant) --------------------------------
+
+
+@st.composite
+def locked_cases(draw):
+    """m = s: both rows regular (a right answer by Lagrange), parallel rows (redundant), or nearly parallel."""
+    kind = draw(st.sampled_from(["m = s", "redundant", "nearly redundant"]))
+    p = dict(LOCKED_BASE)
+    p.update(J1=draw(logu(0.1, 10.0)), J2=draw(logu(0.1, 10.0)), A00=draw(st.floats(0.5, 2.0)),
+             A01=draw(st.floats(-2.0, 2.0)), b0=draw(st.floats(-1.0, 1.0)), e0=draw(st.floats(-1.0, 1.0)))
+    if kind == "m = s":
+        p.update(A10=draw(st.floats(-1.0, 1.0)), A11=draw(st.floats(0.5, 2.0)) * draw(st.sampled_from([1, -1])),
+                 b1=draw(st.floats(-1.0, 1.0)), e1=draw(st.floats(-1.0, 1.0)))
+        if abs(p["A00"] * p["A11"] - p["A01"] * p["A10"]) < 0.1:
+            p["A11"] += 1.0 if p["A11"] > 0 else -1.0
+    else:
+        g = draw(st.floats(-3.0, 3.0).filter(lambda x: abs(x) > 0.1))
+        d = 0.0 if kind == "redundant" else draw(st.sampled_from([1.0, -1.0])) * draw(logu(1e-14, 1e-6))
+        p.update(A10=g * p["A00"] + d, A11=g * p["A01"], b1=g * p["b0"], e1=g * p["e0"])
+    ts = draw(report_times())
+    # the velocities that meet both constraints at ts[0] (least squares for parallel rows, plus a free part)
+    A = LockedModel.jac(None, None, ts[0], p)
+    rhs = -(np.array([p["b0"], p["b1"]]) * np.sin(ts[0]) + np.array([p["e0"], p["e1"]]))
+    qd0 = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    if kind != "m = s":
+        qd0 = qd0 + draw(st.floats(-2.0, 2.0)) * np.array([-p["A01"], p["A00"]])
+    q0 = np.asarray(draw(st.lists(st.floats(-1.0, 1.0), min_size=2, max_size=2)))
+    what = {"m = s": "two regular constraints on two coordinates (no freedom left: the motion is prescribed)",
+            "redundant": "second row a multiple of the first (rank 1)",
+            "nearly redundant": "second row a multiple of the first plus 1e-14..1e-6"}[kind]
+    return Case(f"locked: {kind}", "locked", params=p, q0=q0, qd0=qd0, ts=ts, what=what,
+                names=r"method|constraint")
+
+
+# =====================================================================================
+# Running and judging
+# =====================================================================================
+
+
+def _status_code(sol) -> int:
+    return int(np.asarray(sol.status._value))
+
+
+def judge_solution(case: Case, q, qd, code: int, message: str, ref=None) -> Outcome:
+    """The outcome of a returned solution (one case)."""
+    if code != 0:
+        if not message or message == "success":
+            return Outcome(SILENT_WRONG, f"failure code {code} without a message")
+        if np.all(np.isfinite(np.asarray(q)[-1])) and np.all(np.isfinite(np.asarray(qd)[-1])):
+            return Outcome(SILENT_WRONG, f"failure status but finite final values: {message[:80]}")
+        return Outcome(FAILURE, message[:100])
+    if not case.valid:
+        return Outcome(SILENT_WRONG, "success on an input that has no right answer")
+    ref = case.reference() if ref is None else ref
+    if ref is None:
+        return Outcome(SILENT_WRONG, "success, but the reference integration failed")
+    # the allowed error scales with the tolerances asked for (1000 × rtol, 1000 × atol; defaults 1e-8, 1e-10)
+    rtol = MOTION_RTOL * float(case.kw.get("rtol", 1e-8)) / 1e-8
+    atol = MOTION_ATOL * float(case.kw.get("atol", 1e-10)) / 1e-10
+    err = motion_error(q, qd, ref, case.ts, rtol, atol)
+    if err <= 1.0:
+        return Outcome(RIGHT, f"error {err * rtol:.1e} of the scale", err * rtol)
+    return Outcome(SILENT_WRONG, f"success but error {err:.3g} × the allowed error", err * rtol)
+
+
+def judge_error(case: Case, exc: BaseException) -> Outcome:
+    msg = f"{type(exc).__name__}: {exc}"
+    if re.search(case.names, str(exc)):
+        return Outcome(CLEAR_ERROR, msg.splitlines()[0][:120])
+    return Outcome(UNCLEAR_ERROR, msg.splitlines()[0][:160])
+
+
+def _params_for_call(p):
+    return {k: (float(v) if isinstance(v, (np.floating, float)) and not isinstance(v, bool) else v)
+            for k, v in p.items()}
+
+
+def run_eager(case: Case) -> Outcome:
+    """`simulate` called eagerly: throw=False gives the status; a failure must also raise with throw=True."""
+    mech = case.mech or MECHS[case.family]
+    p = _params_for_call(case.params)
+    try:
+        sol = nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=False, **case.kw)
+    except Exception as e:  # noqa: BLE001 - every exception is judged
+        return judge_error(case, e)
+    code = _status_code(sol)
+    out = judge_solution(case, sol.q, sol.qd, code, sol.message)
+    if code != 0:
+        try:
+            nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=True, **case.kw)
+        except nh.SimulationError as e:
+            if e.status is None or int(np.asarray(e.status._value)) != code:
+                return Outcome(SILENT_WRONG, "throw=True raised with another status")
+        except Exception as e:  # noqa: BLE001
+            return Outcome(UNCLEAR_ERROR, f"throw=True raised {type(e).__name__}: {e}"[:160])
+        else:
+            return Outcome(SILENT_WRONG, "failure status, but throw=True did not raise")
+    return out
+
+
+_JITTED: dict = {}
+
+
+def _jitted(family):
+    """One compiled `simulate(..., throw=True)` per family, under the user's own jax.jit."""
+    if family not in _JITTED:
+        mech = MECHS[family]
+
+        def f(p, q0, qd0, ts):
+            sol = nh.simulate(mech, p, q0, qd0, ts, throw=True)
+            return sol.q, sol.qd
+
+        _JITTED[family] = jax.jit(f)
+    return _JITTED[family]
+
+
+STATUS_MESSAGES = tuple(m for m in STATUS._index_to_message if m)
+
+
+def run_jit(case: Case) -> Outcome:
+    """`simulate` under jax.jit with throw=True: a failure is an error raised from inside the program."""
+    if case.mech is not None or case.kw:
+        mech = case.mech or MECHS[case.family]
+
+        def f(p, q0, qd0, ts):
+            sol = nh.simulate(mech, p, q0, qd0, ts, throw=True, **case.kw)
+            return sol.q, sol.qd
+
+        fn = jax.jit(f)
+    else:
+        fn = _jitted(case.family)
+    try:
+        q, qd = fn(_params_for_call(case.params), case.q0, case.qd0, case.ts)
+        q, qd = np.asarray(q), np.asarray(qd)
+    except Exception as e:  # noqa: BLE001
+        text = str(e)
+        if any(m[:60] in text for m in STATUS_MESSAGES):
+            return Outcome(FAILURE, "in-graph error: " + next(m for m in STATUS_MESSAGES if m[:60] in text)[:80])
+        return judge_error(case, e)
+    return judge_solution(case, q, qd, 0, "success")
+
+
+# --- vmap ∘ value_and_grad over value cases -------------------------------------------------
+
+
+def _loss(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
+    p = {**rest, **theta}
+    qd0 = shafts_qd0(p, w0, v3, ts[0]) + delta
+    sol = nh.simulate(SHAFTS, p, q0, qd0, ts, throw=False)
+    L = jnp.dot(wq, sol.q[-1]) + jnp.dot(wqd, sol.qd[-1])
+    return L, (sol.q, sol.qd, sol.status._value)
+
+
+VALUE_AND_GRAD = jax.jit(jax.vmap(jax.value_and_grad(_loss, has_aux=True)))
+"""One compiled program: value and gradient with respect to THETA, batched over BATCH cases."""
+
+
+def ref_loss(case: Case, theta: dict) -> Optional[float]:
+    """The differentiated scalar by the reference, at parameters theta (the start depends on them
+    as in `_loss`; an inconsistent start is projected, as the reference does)."""
+    p = {**case.rest, **theta}
+    pn = {k: np.float64(v) for k, v in p.items()}
+    ts = case.ts
+    qd0 = np.asarray(shafts_qd0(pn, np.float64(case.w0), np.float64(case.v3), np.float64(ts[0]), np)) + case.delta
+    qd0 = ref_project(ShaftsModel, case.q0, qd0, ts[0], pn)
+    ref = ref_motion(ShaftsModel, pn, case.q0, qd0, ts)
+    if ref is None:
+        return None
+    return float(np.dot(W_Q, ref[0][-1]) + np.dot(W_QD, ref[1][-1]))
+
+
+def direction(case: Case) -> dict:
+    """A fixed pseudo-random direction in THETA (relative to each parameter's size)."""
+    rng = np.random.default_rng(abs(hash(tuple(np.round(case.ts, 12)))) % 2**32)
+    return {k: float(rng.normal()) * (abs(float(case.theta[k])) + 0.1) for k in THETA}
+
+
+def judge_gradient(case: Case, grad: dict, h: float = 1e-4) -> Outcome:
+    """The gradient along a direction v against the reference's central difference. Allowed error:
+    GRAD_RTOL of the terms' size, plus what the absolute tolerance allows, MOTION_ATOL (1000 × atol)
+    per unit of the sensitivities' weights Σ|W|·Σ|v_i| (the sensitivities share the state's atol)."""
+    v = direction(case)
+    gv_terms = np.array([float(grad[k]) * v[k] for k in THETA])
+    plus = ref_loss(case, {k: float(case.theta[k]) + h * v[k] for k in THETA})
+    minus = ref_loss(case, {k: float(case.theta[k]) - h * v[k] for k in THETA})
+    if plus is None or minus is None:
+        return Outcome(SILENT_WRONG, "success, but the reference failed near the parameters")
+    fd = (plus - minus) / (2 * h)
+    gv = float(np.sum(gv_terms))
+    floor = MOTION_ATOL * (np.sum(np.abs(W_Q)) + np.sum(np.abs(W_QD))) * sum(abs(x) for x in v.values())
+    err = abs(gv - fd) / (GRAD_RTOL * (abs(fd) + np.sum(np.abs(gv_terms))) + floor)
+    if np.isfinite(gv) and err <= 1.0:
+        return Outcome(RIGHT, f"gradient error {err * GRAD_RTOL:.1e}", err * GRAD_RTOL)
+    return Outcome(SILENT_WRONG, f"success but gradient along v {gv:.6g} vs reference {fd:.6g} "
+                   f"({err:.3g} × the allowed error)", err * GRAD_RTOL)
+
+
+def stack_cases(cases, weights=(W_Q, W_QD)):
+    f = lambda xs: jnp.asarray(np.stack([np.asarray(x, float) for x in xs]))  # noqa: E731
+    theta = {k: f([c.theta[k] for c in cases]) for k in THETA}
+    rest = {k: f([c.rest[k] for c in cases]) for k in cases[0].rest}
+    return (theta, rest, f([c.w0 for c in cases]), f([c.v3 for c in cases]), f([c.delta for c in cases]),
+            f([c.q0 for c in cases]), f([c.ts for c in cases]), f([weights[0]] * len(cases)),
+            f([weights[1]] * len(cases)))
+
+
+def batched(cases, weights=(W_Q, W_QD)):
+    """(q, q̇, status, gradient dict) per case, calling VALUE_AND_GRAD on batches of BATCH cases
+    (the last one padded by repeating its first case)."""
+    out = []
+    for i in range(0, len(cases), BATCH):
+        chunk = list(cases[i:i + BATCH])
+        n = len(chunk)
+        chunk += [chunk[0]] * (BATCH - n)
+        (_, (q, qd, status)), grad = VALUE_AND_GRAD(*stack_cases(chunk, weights))
+        q, qd, status = np.asarray(q), np.asarray(qd), np.asarray(status)
+        grad = {k: np.asarray(v) for k, v in grad.items()}
+        out += [(q[j], qd[j], int(status[j]), {k: float(grad[k][j]) for k in THETA}) for j in range(n)]
+    return out
+
+
+def run_vmap_grad(cases):
+    """(value outcome, gradient outcome) per case, from batched calls of VALUE_AND_GRAD."""
+    out = []
+    for c, (q, qd, code, g) in zip(cases, batched(cases)):
+        value = judge_solution(c, q, qd, code, nh._status.describe(code))
+        if code != 0:
+            finite = [k for k in THETA if np.isfinite(g[k])]
+            gradient = (Outcome(FAILURE, "NaN gradient with the failure status") if not finite else
+                        Outcome(SILENT_WRONG, f"failure status but finite gradient in {finite}"))
+        elif value.kind != RIGHT:
+            gradient = value
+        else:
+            gradient = judge_gradient(c, g)
+        out.append((value, gradient))
+    return out
+
+
+# --- linearize -------------------------------------------------------------------------------
+
+LIN_SPEEDS = (0, 2)
+"""Fixed independent speeds (phi1', phi3') for linearisation cases: one compiled program."""
+
+
+def lin_case(case: Case) -> Case:
+    """A linearisation case at the start of a value case: (q0, qd0, ts[0])."""
+    return dataclasses.replace(case, names=r"\bq\b|\bqd\b|\bt\b|params|kinetic|mass|constraint|nonlinear|speeds")
+
+
+def lin_reference(case: Case, speeds):
+    """The reference state matrix at the case's start, or None when the linearisation does
+    not exist: a non-finite input, or equations that are singular there (the KKT matrix
+    `[[M, −Aᵀ], [A, 0]]` or the dependent block of A singular to 1e-12)."""
+    p = {k: float(v) for k, v in case.params.items()}
+    q, qd, t = np.asarray(case.q0, float), np.asarray(case.qd0, float), float(case.ts[0])
+    if not (all(np.isfinite(list(p.values()))) and np.all(np.isfinite(q)) and np.all(np.isfinite(qd))
+            and np.isfinite(t)):
+        return None
+    M, A = ShaftsModel.mass(q, t, p), ShaftsModel.jac(q, qd, t, p)
+    kkt = np.block([[M, -A.T], [A, np.zeros((1, 1))]])
+    dep = [i for i in range(3) if i not in speeds]
+    if np.linalg.cond(kkt) > 1e12 or np.linalg.cond(A[:, dep]) > 1e12:
+        return None
+    with np.errstate(all="ignore"):
+        ref = ref_linearization(ShaftsModel, p, q, qd, t, speeds)
+    return ref if np.all(np.isfinite(ref)) else None
+
+
+def judge_linearization(case: Case, L, speeds) -> Outcome:
+    """L: (A, state, rates) of the returned Linearization."""
+    A = np.asarray(L[0])
+    if not all(np.all(np.isfinite(np.asarray(x))) for x in L):
+        return Outcome(FAILURE, "NaN/inf in the linearisation (linearize has no status)")
+    ref = lin_reference(case, speeds)
+    if ref is None:
+        return Outcome(SILENT_WRONG, "finite linearisation where none exists")
+    err = float(np.max(np.abs(A - ref)) / max(1.0, np.max(np.abs(ref))))
+    if err <= LIN_RTOL:
+        return Outcome(RIGHT, f"error {err:.1e}", err)
+    return Outcome(SILENT_WRONG, f"state matrix off by {err:.2e} (relative to max(1, max|A|))", err)
+
+
+def run_linearize_eager(case: Case, **kw) -> Outcome:
+    kw = {"speeds": LIN_SPEEDS, **kw}
+    try:
+        L = nh.linearize(SHAFTS, _params_for_call(case.params), case.q0, case.qd0, float(case.ts[0]), **kw)
+    except Exception as e:  # noqa: BLE001
+        return judge_error(case, e)
+    return judge_linearization(case, (L.A, L.state, L.rates), L.speeds)
+
+
+def _lin(p, q, qd, t):
+    L = nh.linearize(SHAFTS, p, q, qd, t, speeds=LIN_SPEEDS)
+    return L.A, L.state, L.rates
+
+
+_LIN_JIT = jax.jit(_lin)
+
+
+def run_linearize_jit(case: Case) -> Outcome:
+    try:
+        L = _LIN_JIT(_params_for_call(case.params), case.q0, case.qd0, case.ts[0])
+    except Exception as e:  # noqa: BLE001
+        return judge_error(case, e)
+    return judge_linearization(case, L, LIN_SPEEDS)
+
+
+LINEARIZE_OPTIONS = (
+    ("speeds=(0, 1, 2) (one too many)", dict(speeds=(0, 1, 2)), r"independent|speeds"),
+    ("speeds=(0, 7)", dict(speeds=(0, 7)), r"speeds"),
+    ("speeds=(0, 0)", dict(speeds=(0, 0)), r"speeds"),
+    ("coordinates=(0, 0)", dict(coordinates=(0, 0)), r"coordinates"),
+    ("coordinates=(3,)", dict(coordinates=(3,)), r"coordinates"),
+    ("method='substituted'", dict(method="substituted"), r"method"),
+    ("accelerations of shape (3,)", dict(accelerations=np.zeros(3)), r"accelerations"),
+    ("speeds=(1, 2) with phi2' dependent-only (a1 = 0)", dict(speeds=(0, 2), _params=dict(a1=0.0, a2=0.0, U=0.0)),
+     r"speeds|dependent|constraint"),
+)
+
+
+# --- fit ---------------------------------------------------------------------------------------
+
+
+def fit_record(p: dict, w0: float, v3: float, n: int = 41, span: float = 2.0):
+    """A noise-free record of the shafts family made by the reference (SciPy, rtol 1e-12)."""
+    from jaxnh.identify import Record
+
+    ts = np.linspace(0.0, span, n)
+    pn = {k: np.float64(v) for k, v in p.items()}
+    qd0 = np.asarray(shafts_qd0(pn, np.float64(w0), np.float64(v3), 0.0, np))
+    q, _ = ref_motion(ShaftsModel, pn, np.zeros(3), qd0, ts)
+    return Record(ts, {"phi1": q[:, 0], "phi2": q[:, 1], "phi3": q[:, 2]}, {}, "reference"), qd0
+
+
+FIT_TRUTH = dict(SHAFTS_BASE, dU=0.3, k=3.0, tsw=1.0, b=0.2, w=2.0, c1=0.05, c2=0.1, K=0.005, s3=0.4, M3=0.1)
+
+
+def fit_argument_cases():
+    """(label, kwargs overrides, regex): fit calls that must raise naming the argument, before any compile."""
+    nan_p = {**FIT_TRUTH, "J2": math.nan}
+    return (
+        ("free names a missing parameter", dict(free=("J2", "J9")), r"J9|free"),
+        ("free is empty", dict(free=()), r"free"),
+        ("free repeats a name", dict(free=("J2", "J2")), r"free|repeat"),
+        ("positive not among free", dict(positive=("J1",)), r"positive"),
+        ("positive parameter ≤ 0 at the start", dict(params={**FIT_TRUTH, "J2": -0.05}), r"positive|J2"),
+        ("observe names no coordinate", dict(observe=("phi9",)), r"observe"),
+        ("noise < 0", dict(noise=-1e-3), r"noise"),
+        ("noise NaN", dict(noise=math.nan), r"noise"),
+        ("noise 0", dict(noise=0.0), r"noise"),
+        ("noise for a missing channel", dict(noise={"phi1": 1e-3}), r"noise"),
+        ("optimizer='newton'", dict(optimizer="newton"), r"optimizer"),
+        ("optimizer=3", dict(optimizer=3), r"optimizer"),
+        ("shooting=0", dict(shooting=0), r"shooting"),
+        ("shooting=2.5", dict(shooting=2.5), r"shooting"),
+        ("shooting=True", dict(shooting=True), r"shooting"),
+        ("shooting=400 (segments too short)", dict(shooting=400), r"shooting"),
+        ("rtol='fast'", dict(rtol="fast"), r"rtol"),
+        ("rtol=-1", dict(rtol=-1.0, _optimises=True), r"rtol"),
+        ("differentiation='backward'", dict(differentiation="backward"), r"differentiation"),
+        ("differentiation='reverse' with Levenberg–Marquardt", dict(differentiation="reverse"), r"differentiation|reverse"),
+        ("method='euler'", dict(method="euler"), r"method"),
+        ("q0 of 4 coordinates", dict(q0=np.zeros(4)), r"\bq0?\b|names|coordinates"),
+        ("data is an array", dict(data=np.zeros((41, 4))), r"data|Record"),
+        ("mech is a function", dict(mech=shafts_kinetic), r"mech|Mechanism"),
+        ("qd0 with NaN", dict(qd0=np.array([math.nan, 1.0, 0.5])), r"qd0|finite|NaN"),
+        ("start parameter NaN", dict(params=nan_p, positive=(), _optimises=True), r"J2|params|finite|NaN"),
+    )
+
+
+FIT_KNOWN = {
+    "qd0 with NaN": "fit-nan-qd0-unclear",
+    "start parameter NaN": "fit-nan-start-not-refused",
+    "rtol=-1": "fit-bad-rtol-not-refused",
+}
+
+
+def run_fit(label, overrides, names, record, qd0) -> Outcome:
+    kw = dict(mech=SHAFTS, params=dict(FIT_TRUTH, J2=0.07, c2=0.05), data=record, free=("J2", "c2"),
+              positive=("J2",), noise=1e-6, q0=np.zeros(3), qd0=qd0)
+    kw.update({k: v for k, v in overrides.items() if not k.startswith("_")})
+    case = Case("fit", names=names)
+    try:
+        r = nh.fit(kw.pop("mech"), kw.pop("params"), kw.pop("data"), **kw)
+    except Exception as e:  # noqa: BLE001
+        return judge_error(case, e)
+    return judge_fit(r, overrides.get("_truth"))
+
+
+def judge_fit(r, truth: Optional[dict]) -> Outcome:
+    if not r.converged:
+        return Outcome(FAILURE if r.message else SILENT_WRONG, f"not converged: {r.message[:90]}")
+    if truth is None:
+        return Outcome(SILENT_WRONG, f"converged on an input that has no right answer: {r.message[:60]}")
+    errs = {k: abs(r.estimates[k]["value"] / v - 1) for k, v in truth.items()}
+    if max(errs.values()) <= 1e-5:
+        return Outcome(RIGHT, "relative errors " + ", ".join(f"{k} {e:.0e}" for k, e in errs.items()))
+    return Outcome(SILENT_WRONG, f"converged but off: {errs}")
+
+
+# =====================================================================================
+# The gradient-check matrix: the variator with viscous damping, a ratio step, long horizons
+# =====================================================================================
+#
+# Shaft 1 (J1) drives shaft 2 (J2) through the ratio U(t) = U0 + dU tanh(k (t − tsw)),
+# constraint U(t) phi1' − phi2' = 0, torques M1 − c J1 phi1' (viscous damping at the rate
+# c, 1/s, on shaft 1 alone) and M2: the shafts family with a1 = −1, c1 = c J1 and its third
+# shaft idle (a2 = 0, no torque, spring or damping), so the matrix runs on the fuzz suite's
+# compiled program (VALUE_AND_GRAD, weights picking phi1(T)). With w = phi1' and
+# I = J1 + J2 U², the reduced equation (the seed paper's eq. 9 with damping) is
+#     I ẇ = M1 + U M2 − (J2 U U̇ + c J1) w,
+# linear in w; its sensitivities to c and J2 are integrated with it by SciPy's LSODA
+# (stiff and non-stiff, rtol 1e-10) for the reference.
+
+GM_DAMPING = (1e0, 1e1, 1e2, 1e3, 1e4, 1e5)
+GM_STEEPNESS = (2.0, 1e3, 1e7)
+"""k of the ratio step, 1/s: smooth (a 0.5 s change), fast (1 ms) and a step of 0.1 µs."""
+GM_HORIZONS = (2.0, 100.0)
+GM_RTOL = 1e-5
+"""Value and gradients are right within GM_RTOL of the reference (relative to each). The
+default forward sensitivities are integrated with the state and included in its error
+control at rtol 1e-8, so the same 1000 × rtol bound as for the motion applies; measured
+errors on the matrix: ≤ 2e-7 (benchmarks/RELIABILITY.md). The reference (LSODA at rtol
+1e-10) agrees with DOP853 at rtol 1e-12 to ≤ 3e-7 of the gradient on the steepest step and
+≤ 1e-8 elsewhere, and with the closed form of the constant-ratio case to 1e-8
+(tests/test_gradient_matrix.py)."""
+GM_WEIGHTS = ((1.0, 0.0, 0.0), (0.0, 0.0, 0.0))  # L = phi1(T)
+
+
+def gradient_matrix_cases(damping=GM_DAMPING, steepness=GM_STEEPNESS, horizons=GM_HORIZONS):
+    """One dict per case: the variator's parameters, w0 = phi1'(0) (rad/s), the horizon T (s), and
+    the shafts case that runs it."""
+    out = []
+    for c in damping:
+        for k in steepness:
+            for T in horizons:
+                tsw = 1.0 if k < 10 else 0.7 * T + 0.0123  # a fast step late in the run, between report times
+                p = dict(J1=0.02, J2=0.05, U0=1.2, dU=0.3, k=k, tsw=tsw, M1=0.3, M2=-0.1, c=c)
+                sp = dict(SHAFTS_BASE, J1=p["J1"], J2=p["J2"], U=p["U0"], dU=p["dU"], k=k, tsw=tsw, a1=-1.0,
+                          M1=p["M1"], M2=p["M2"], M3=0.0, c1=c * p["J1"])
+                ts = np.linspace(0.0, T, N_TS)
+                case = value_case("gradient matrix", *split(sp), 2.0, 0.0, np.zeros(3), np.zeros(3), ts)
+                known = "steep-step-skipped" if k >= 1e6 else ""
+                out.append(dict(p=p, w0=2.0, T=T, known=known, case=case,
+                                label=f"c = {c:.0e} /s, k = {k:.0e} /s, T = {T:g} s"))
+    return out
+
+
+def gm_reference(p, w0, T, rtol: float = 1e-10):
+    """(phi1(T), ∂phi1(T)/∂c, ∂phi1(T)/∂J2) of the reduced equation, with its sensitivities."""
+    J1, J2, c, M1, M2 = (p[k] for k in ("J1", "J2", "c", "M1", "M2"))
+
+    def rates(t):
+        th = np.tanh(p["k"] * (t - p["tsw"]))
+        return p["U0"] + p["dU"] * th, p["dU"] * p["k"] * (1 - th * th)
+
+    def fun(t, y):
+        u, du = rates(t)
+        I = J1 + J2 * u * u
+        a = (J2 * u * du + c * J1) / I
+        w = y[1]
+        f = (M1 + u * M2) / I - a * w
+        return np.array([w, f, y[3], -a * y[3] - J1 * w / I, y[5], -a * y[5] - u * du * w / I - f * u * u / I])
+
+    def jac(t, y):
+        u, du = rates(t)
+        I = J1 + J2 * u * u
+        a = (J2 * u * du + c * J1) / I
+        J = np.zeros((6, 6))
+        J[0, 1] = J[2, 3] = J[4, 5] = 1.0
+        J[1, 1] = J[3, 3] = J[5, 5] = -a
+        J[3, 1] = -J1 / I
+        J[5, 1] = (a * u * u - u * du) / I
+        return J
+
+    sol = solve_ivp(fun, (0.0, T), [0.0, w0, 0.0, 0.0, 0.0, 0.0], method="LSODA", rtol=rtol, atol=1e-16, jac=jac)
+    if sol.status != 0:
+        raise RuntimeError(f"gradient-matrix reference failed: {sol.message}")
+    return sol.y[0, -1], sol.y[2, -1], sol.y[4, -1]
+
+
+def run_gradient_matrix(cases):
+    """Outcome per case: value and both gradients right to GM_RTOL, or a failure status with NaN gradients.
+    ∂/∂c = J1 ∂/∂c1 (the shafts family's damping coefficient is c1 = c J1)."""
+    out = []
+    for c, (q, qd, code, g) in zip(cases, batched([c["case"] for c in cases], GM_WEIGHTS)):
+        got = np.array([q[-1, 0], g["c1"] * c["p"]["J1"], g["J2"]])
+        if code != 0:
+            msg = nh._status.describe(code)
+            if np.any(np.isfinite(got[1:])):
+                out.append(Outcome(SILENT_WRONG, f"{msg[:60]} but finite gradients {got[1:]}"))
+            else:
+                out.append(Outcome(FAILURE, f"{msg[:70]}; NaN gradients"))
+            continue
+        ref = np.array(gm_reference(c["p"], c["w0"], c["T"]))
+        err = np.abs(got - ref) / np.abs(ref)
+        names = ("phi1(T)", "∂/∂c", "∂/∂J2")
+        if np.all(err <= GM_RTOL):
+            out.append(Outcome(RIGHT, f"errors {', '.join(f'{n} {e:.0e}' for n, e in zip(names, err))}",
+                               float(np.max(err))))
+        else:
+            worst = int(np.argmax(err))
+            out.append(Outcome(SILENT_WRONG, f"success but {names[worst]} = {got[worst]:.6g}, reference "
+                               f"{ref[worst]:.6g}", float(np.max(err))))
+    return out
+
+
+def run_gradient_matrix_eager(cases):
+    """The plain solve (simulate eagerly, no derivative) of matrix cases: phi1(T) against the reference."""
+    out = []
+    for c in cases:
+        case = c["case"]
+        sol = nh.simulate(SHAFTS, _params_for_call(case.params), case.q0, case.qd0, case.ts, throw=False)
+        code = _status_code(sol)
+        if code != 0:
+            out.append(Outcome(FAILURE, sol.message[:80]) if not np.isfinite(float(sol.q[-1, 0]))
+                       else Outcome(SILENT_WRONG, "failure status with a finite value"))
+            continue
+        ref = gm_reference(c["p"], c["w0"], c["T"])[0]
+        err = abs(float(sol.q[-1, 0]) - ref) / abs(ref)
+        out.append(Outcome(RIGHT if err <= GM_RTOL else SILENT_WRONG,
+                           f"phi1(T) = {float(sol.q[-1, 0]):.8g}, reference {ref:.8g}", err))
+    return out
+
+
+def run_gradient_matrix_reverse(cases):
+    """The matrix by reverse mode (diffrax.RecursiveCheckpointAdjoint through the explicit steps):
+    one more program, for the slow tier and the report."""
+    if "p" not in _REVERSE:
+        _REVERSE["p"] = jax.jit(jax.vmap(jax.value_and_grad(_reverse_final, has_aux=True)))
+    res = []
+    for i in range(0, len(cases), BATCH):
+        chunk = [c["case"] for c in cases[i:i + BATCH]]
+        n = len(chunk)
+        chunk += [chunk[0]] * (BATCH - n)
+        (value, status), g = _REVERSE["p"](*stack_cases(chunk, GM_WEIGHTS))
+        res += [(int(status[j]), float(value[j]), float(g["c1"][j]), float(g["J2"][j])) for j in range(n)]
+    outcomes = []
+    for c, (code, val, gc1, gJ2) in zip(cases, res):
+        got = np.array([val, gc1 * c["p"]["J1"], gJ2])
+        if code != 0:
+            kind = FAILURE if not np.any(np.isfinite(got[1:])) else SILENT_WRONG
+            outcomes.append(Outcome(kind, f"{nh._status.describe(code)[:70]}; gradients {got[1:]}"))
+            continue
+        ref = np.array(gm_reference(c["p"], c["w0"], c["T"]))
+        err = float(np.max(np.abs(got - ref) / np.abs(ref)))
+        outcomes.append(Outcome(RIGHT if err <= GM_RTOL else SILENT_WRONG, f"largest relative error {err:.1e}", err))
+    return outcomes
+
+
+_REVERSE: dict = {}
+
+
+def _reverse_final(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
+    import diffrax
+
+    p = {**rest, **theta}
+    qd0 = shafts_qd0(p, w0, v3, ts[0]) + delta
+    sol = nh.simulate(SHAFTS, p, q0, qd0, ts, throw=False, adjoint=diffrax.RecursiveCheckpointAdjoint())
+    return jnp.dot(wq, sol.q[-1]) + jnp.dot(wqd, sol.qd[-1]), sol.status._value
+
+
+# --- known library issues (found by these generators; reported, not hidden) -------------------
+
+KNOWN_ISSUES = {
+    "complex-input-truncated": (
+        "simulate accepts complex q0, qd0 or ts and drops the imaginary part (jaxnh.equations.base.as_float "
+        "casts any non-floating dtype to float; the dtype check after it never sees complex): success with "
+        "the motion of the real part."),
+    "complex-parameter-unclear": (
+        "a complex parameter fails inside jax.hessian with JAX's 'jacrev requires real-valued outputs', "
+        "which names neither the parameter nor `kinetic`."),
+    "string-input-unclear": (
+        "q0 given as a string fails in jnp.asarray with JAX's 'is not a valid JAX array type', which does not "
+        "name q0."),
+    "string-tolerance-unclear": (
+        "rtol/atol given as a string (or None) fail with Python's \"'>=' not supported between instances of "
+        "'str' and 'int'\", which names neither rtol nor atol."),
+    "string-dt0-unclear": ("dt0 given as a string fails in float(), naming neither dt0 nor the unit."),
+    "fit-nan-qd0-unclear": (
+        "fit(qd0=[nan, ...]) raises 'the 1 constraints are linearly dependent at this state', a wrong "
+        "diagnosis that does not name qd0 or the NaN."),
+    "fit-nan-start-not-refused": (
+        "fit with a NaN starting value of a free parameter is not refused: the optimiser 'stops on its "
+        "tolerances' at once and the result says the simulation failed (converged=False)."),
+    "fit-bad-rtol-not-refused": (
+        "fit(rtol=-1) is not refused: the Levenberg–Marquardt solve runs (and compiles, ≈ 20 s) and ends "
+        "with converged=False and 'optimistix stopped: result code 2' (simulate itself refuses rtol=-1)."),
+    "atol-inf-accepted": (
+        "simulate accepts atol=inf (the check is `atol >= 0`): the step control accepts every step and the "
+        "solve reports success with errors of 1e-3..1e-2."),
+    "linearize-traced-nonlinear": (
+        "linearize under jit/vmap (traced inputs) skips the check of undeclared nonlinear constraints and "
+        "returns a finite, wrong state matrix."),
+    "near-redundant-accepted": (
+        "nearly parallel constraint rows: qd0 passes the consistency check (relative to ‖A_k‖·‖qd0‖) while it "
+        "is far from the constraint manifold in the ill-conditioned direction; 'lagrange' keeps the violation "
+        "and reports success."),
+    "steep-step-skipped": (
+        "a ratio step much shorter than the solver's steps (a tanh step of width 0.1 µs, k = 1e7 /s, with "
+        "light damping, c = 1..10 /s) is stepped over: success, phi1(T) off by up to 2 % and ∂phi1/∂J2 by up "
+        "to 94 %. simulate's docstring says to keep dtmax below the width of such a change; nothing in the "
+        "result says it was stepped over."),
+    "tiny-velocities-refused": (
+        "consistent velocities of size 1e-300..1e-160 are refused with inconsistent_velocities: the check's "
+        "‖qd0‖ (jnp.linalg.norm) underflows to 0 when the squares do, so the allowed residual collapses to the "
+        "smallest normal number (a false refusal, not a silent wrong answer)."),
+    "large-other-velocity-hides-violation": (
+        "the consistency check scales each constraint's residual by ‖A_k‖·‖qd0‖, the norm of ALL velocities: "
+        "a large velocity of a coordinate the constraint does not involve hides a violation of the ones it "
+        "does, and the dependent velocity is silently replaced."),
+}
