@@ -264,6 +264,9 @@ def simulate(
     if baumgarte_rate is not None:
         form = Lagrange(baumgarte=baumgarte_rate)
     record = _record(record, form)
+    if not _is_float_jax_array(q0) or not _is_jax_array(qd0, q0.dtype) or not _is_jax_array(ts, q0.dtype):
+        for name, x in (("q0", q0), ("qd0", qd0), ("ts", ts)):
+            _check_real_numbers(name, x)
     q0 = q0 if _is_float_jax_array(q0) else as_float(q0)
     qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
@@ -284,8 +287,13 @@ def simulate(
     if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
     eps = float(np.finfo(q0.dtype).eps)
-    if not (rtol >= 0) or not (atol >= 0):
-        raise ValueError(f"rtol={rtol!r}, atol={atol!r}: the tolerances must be numbers ≥ 0")
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        number = isinstance(tol, (int, float, np.number, np.ndarray, jax.Array)) and not isinstance(tol, bool)
+        if not number or np.ndim(tol) != 0 or not (0 <= float(tol) < np.inf):
+            raise ValueError(
+                f"{name}={tol!r}: the tolerances must be finite real numbers ≥ 0 (rtol relative, atol in the "
+                f"units of the state), e.g. rtol=1e-8, atol=1e-10"
+            )
     if rtol < 10 * eps:
         raise ValueError(
             f"rtol={rtol:g} is below what {q0.dtype} can resolve (machine epsilon {eps:.2g}); "
@@ -303,7 +311,13 @@ def simulate(
                 stepsize_controller = diffrax.ClipStepSizeController(
                     stepsize_controller, step_ts=jnp.asarray(step_ts, dtype=q0.dtype)
                 )
-    if dt0 is not None and not is_traced(dt0) and not float(dt0) > 0:
+    if (
+        dt0 is not None
+        and not is_traced(dt0)
+        and not (
+            isinstance(dt0, (int, float, np.number, np.ndarray, jax.Array)) and np.ndim(dt0) == 0 and float(dt0) > 0
+        )
+    ):
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     traced = is_traced(params, q0, qd0, ts, form)
     sol = _run(
@@ -356,6 +370,26 @@ def _rtol_class(rtol: float) -> float:
     """
     above = [th for th in (DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED) if rtol < th]
     return 0.5 * min(above) if above else 1.0
+
+
+def _check_real_numbers(name, x):
+    """Raise, naming the argument, for input that is not an array of real numbers (strings, complex)."""
+    if isinstance(x, jax.core.Tracer):
+        kind = x.dtype
+    else:
+        try:
+            kind = np.asarray(x).dtype
+        except Exception as err:  # ragged lists and the like
+            raise ValueError(f"{name} must be an array of real numbers; got {x!r} ({err})") from None
+    if not (np.issubdtype(kind, np.floating) or np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.bool_)):
+        raise ValueError(
+            f"{name} must be an array of real numbers (float32 or float64); got dtype {kind} from {x!r:.80}"
+            + (
+                ": drop the imaginary part explicitly if it is meant to be zero"
+                if np.issubdtype(kind, np.complexfloating)
+                else ""
+            )
+        )
 
 
 def _is_jax_array(x, dtype) -> bool:
