@@ -18,7 +18,7 @@ Run:  python examples/design_experiment.py [--starts 1] [--steps 400]
 
 Takes a few minutes (compilation of the nested forward derivatives, then
 about 0.1 s per design step). `jaxnh design` does steps 1–2 from the command
-line; benchmarks/experiment_design.py repeats step 3 400 times.
+line; benchmarks/experiment_design.py repeats step 3 1200 times.
 """
 
 import argparse
