@@ -153,7 +153,7 @@ def run_fit(tally, n_starts):
         for _ in range(n_starts):
             start = {"J2": R.FIT_TRUTH["J2"] * rng.uniform(0.6, 1.6), "c2": R.FIT_TRUTH["c2"] * rng.uniform(0.4, 1.6)}
             over = dict(params={**R.FIT_TRUTH, **start}, _truth=truth)
-            tally.add("fit", "noise-free record, start 40–60 % off", R.Case("fit"),
+            tally.add("fit", "noise-free record, start up to 60 % off", R.Case("fit"),
                       R.run_fit("start", over, r"$^", rec, qd0),
                       "J2 and c2 from a record made by the reference (41 samples, 3 channels)")
 
@@ -204,7 +204,7 @@ def run_csv(tally, n_per_fault, n_bytes):
                             for k in IO.REQUIRED)
                         out = (R.Outcome(R.RIGHT, "read bit for bit") if same
                                else R.Outcome(R.SILENT_WRONG, "values differ"))
-                tally.add("CSV reader", fault, case, out, _CSV_WHAT.get(fault, ""))
+                tally.add("CSV reader", f"CSV: {fault}", case, out, _CSV_WHAT.get(fault, ""))
         for data in R.draw(st.binary(max_size=400), n_bytes):
             path = IO.write(d, b"t,phi1,phi2,M1,M2\n" + data)
             try:
@@ -217,7 +217,7 @@ def run_csv(tally, n_per_fault, n_bytes):
                 ok = (isinstance(r, Record) and np.all(np.isfinite(r.t)) and np.all(np.diff(r.t) > 0)
                       and all(np.all(np.isfinite(v)) for v in list(r.channels.values()) + list(r.inputs.values())))
                 out = R.Outcome(R.RIGHT if ok else R.SILENT_WRONG, "a well-formed record" if ok else "bad values read")
-            tally.add("CSV reader", "random bytes after a header", R.Case("csv"), out,
+            tally.add("CSV reader", "CSV: random bytes after a header", R.Case("csv"), out,
                       "up to 400 random bytes after a valid header")
 
 

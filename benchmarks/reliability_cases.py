@@ -1007,7 +1007,7 @@ LINEARIZE_OPTIONS = (
     ("coordinates=(3,)", dict(coordinates=(3,)), r"coordinates"),
     ("method='substituted'", dict(method="substituted"), r"method"),
     ("accelerations of shape (3,)", dict(accelerations=np.zeros(3)), r"accelerations"),
-    ("speeds=(1, 2) with phi2' dependent-only (a1 = 0)", dict(speeds=(0, 2), _params=dict(a1=0.0, a2=0.0, U=0.0)),
+    ("speeds=(0, 2), the dependent phi2' with coefficient a1 = 0", dict(speeds=(0, 2), _params=dict(a1=0.0)),
      r"speeds|dependent|constraint"),
 )
 
