@@ -107,8 +107,9 @@ def run_simulate(tally, n_eager, n_jit, n_batches):
             tally.add("Mechanism(...)", "bad arguments", case, out, "")
     with timed(tally, "simulate, locked"):
         for case in R.draw(R.locked_cases(), 3 * n_jit):
-            lag = R.dataclasses.replace(case, kw=dict(method="lagrange"),
-                                        known="near-redundant-accepted" if "nearly" in case.cls else "")
+            lag = R.dataclasses.replace(
+                case, kw=dict(method="lagrange"), known="near-redundant-accepted" if "nearly" in case.cls else ""
+            )
             tally.add("simulate, eager, 'lagrange'", case.cls, lag, R.run_eager(lag), case.what)
             tally.add("simulate, eager", case.cls, case, R.run_eager(case), case.what)
 
@@ -132,7 +133,8 @@ def run_linearize(tally, n):
                 c = R.lin_case(c)
                 tally.add("linearize, eager", cls, c, R.run_linearize_eager(c), c.what)
                 jc = R.dataclasses.replace(
-                    c, known="linearize-traced-nonlinear" if cls == "undeclared nonlinear constraint" else "")
+                    c, known="linearize-traced-nonlinear" if cls == "undeclared nonlinear constraint" else ""
+                )
                 tally.add("linearize, jax.jit", cls, jc, R.run_linearize_jit(jc), c.what)
         base = R.lin_case(R.draw(R.value_cases("valid"), 1)[0])
         for label, kw, names in R.LINEARIZE_OPTIONS:
@@ -153,9 +155,13 @@ def run_fit(tally, n_starts):
         for _ in range(n_starts):
             start = {"J2": R.FIT_TRUTH["J2"] * rng.uniform(0.6, 1.6), "c2": R.FIT_TRUTH["c2"] * rng.uniform(0.4, 1.6)}
             over = dict(params={**R.FIT_TRUTH, **start}, _truth=truth)
-            tally.add("fit", "noise-free record, start up to 60 % off", R.Case("fit"),
-                      R.run_fit("start", over, r"$^", rec, qd0),
-                      "J2 and c2 from a record made by the reference (41 samples, 3 channels)")
+            tally.add(
+                "fit",
+                "noise-free record, start up to 60 % off",
+                R.Case("fit"),
+                R.run_fit("start", over, r"$^", rec, qd0),
+                "J2 and c2 from a record made by the reference (41 samples, 3 channels)",
+            )
 
 
 def _gm_class(c):
@@ -201,9 +207,13 @@ def run_csv(tally, n_per_fault, n_bytes):
                     else:
                         same = r.n == len(cols["t"]) and all(
                             np.array_equal(r.t if k == "t" else {**r.channels, **r.inputs}[k], np.asarray(cols[k]))
-                            for k in IO.REQUIRED)
-                        out = (R.Outcome(R.RIGHT, "read bit for bit") if same
-                               else R.Outcome(R.SILENT_WRONG, "values differ"))
+                            for k in IO.REQUIRED
+                        )
+                        out = (
+                            R.Outcome(R.RIGHT, "read bit for bit")
+                            if same
+                            else R.Outcome(R.SILENT_WRONG, "values differ")
+                        )
                 tally.add("CSV reader", f"CSV: {fault}", case, out, _CSV_WHAT.get(fault, ""))
         for data in R.draw(st.binary(max_size=400), n_bytes):
             path = IO.write(d, b"t,phi1,phi2,M1,M2\n" + data)
@@ -214,11 +224,20 @@ def run_csv(tally, n_per_fault, n_bytes):
             except Exception as e:  # noqa: BLE001
                 out = R.Outcome(R.UNCLEAR_ERROR, f"{type(e).__name__}: {e}"[:120])
             else:
-                ok = (isinstance(r, Record) and np.all(np.isfinite(r.t)) and np.all(np.diff(r.t) > 0)
-                      and all(np.all(np.isfinite(v)) for v in list(r.channels.values()) + list(r.inputs.values())))
+                ok = (
+                    isinstance(r, Record)
+                    and np.all(np.isfinite(r.t))
+                    and np.all(np.diff(r.t) > 0)
+                    and all(np.all(np.isfinite(v)) for v in list(r.channels.values()) + list(r.inputs.values()))
+                )
                 out = R.Outcome(R.RIGHT if ok else R.SILENT_WRONG, "a well-formed record" if ok else "bad values read")
-            tally.add("CSV reader", "CSV: random bytes after a header", R.Case("csv"), out,
-                      "up to 400 random bytes after a valid header")
+            tally.add(
+                "CSV reader",
+                "CSV: random bytes after a header",
+                R.Case("csv"),
+                out,
+                "up to 400 random bytes after a valid header",
+            )
 
 
 _CSV_WHAT = {
@@ -250,15 +269,23 @@ def repro(row, case, outcome) -> str:
         args = f"params={p!r},\n    q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r}"
         if api.startswith("linearize"):
             tail = f", t={float(case.ts[0])!r}, speeds={R.LIN_SPEEDS}"
-            call = ("linearize(SHAFTS, " if "jit" not in api
-                    else "jax.jit(lambda p, q, qd, t: linearize(SHAFTS, p, q, qd, t, speeds=(0, 2)).A)(...")
+            call = (
+                "linearize(SHAFTS, "
+                if "jit" not in api
+                else "jax.jit(lambda p, q, qd, t: linearize(SHAFTS, p, q, qd, t, speeds=(0, 2)).A)(..."
+            )
             return f"{call}{args}{tail})"
-        return (f"simulate(SHAFTS, {args},\n    ts={np.asarray(case.ts).tolist()!r}"
-                + (f", **{case.kw!r}" if case.kw else "") + ")")
+        return (
+            f"simulate(SHAFTS, {args},\n    ts={np.asarray(case.ts).tolist()!r}"
+            + (f", **{case.kw!r}" if case.kw else "")
+            + ")"
+        )
     if case.family == "locked" and case.params is not None:
-        return (f"simulate(LOCKED, params={ {k: float(v) for k, v in case.params.items()}!r},\n"
-                f"    q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r},\n"
-                f"    ts={np.asarray(case.ts).tolist()!r}, **{case.kw!r})")
+        return (
+            f"simulate(LOCKED, params={ {k: float(v) for k, v in case.params.items()}!r},\n"
+            f"    q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r},\n"
+            f"    ts={np.asarray(case.ts).tolist()!r}, **{case.kw!r})"
+        )
     return case.what
 
 
@@ -267,18 +294,23 @@ def write(tally, cases_gm, args, elapsed):
     add = L.append
     add("# Reliability report: no silent wrong answers (issue 15)")
     add("")
-    add(f"Generated by `python -m benchmarks.reliability{' --quick' if args.quick else ''}` on "
+    add(
+        f"Generated by `python -m benchmarks.reliability{' --quick' if args.quick else ''}` on "
         f"{datetime.date.today().isoformat()} (jaxnh {nh.__version__}, JAX {jax.__version__}, "
         f"{platform.python_implementation()} {platform.python_version()}; {elapsed:.0f} s of CPU). "
-        "Every number below is computed by that script; nothing is typed by hand.")
+        "Every number below is computed by that script; nothing is typed by hand."
+    )
     add("")
     add("## How a case is judged")
     add("")
-    add("The case generators and the oracle are the fuzz suite's (`benchmarks/reliability_cases.py`, "
+    add(
+        "The case generators and the oracle are the fuzz suite's (`benchmarks/reliability_cases.py`, "
         "run by `tests/test_fuzz.py` and `tests/test_gradient_matrix.py` with few examples; here with "
-        "many). Every call ends in one of five outcomes:")
+        "many). Every call ends in one of five outcomes:"
+    )
     add("")
-    add("* **right** — success, and the answer agrees with an independent reference: the same "
+    add(
+        "* **right** — success, and the answer agrees with an independent reference: the same "
         "mechanics written out by hand in NumPy (mass matrix, constraint Jacobian, Chetaev constraint "
         "forces, `M q̈ = Q + Aᵀλ, A q̈ + ∂c/∂t = 0` solved by least squares) and integrated by SciPy's "
         f"DOP853 at rtol 1e-12, to {R.MOTION_RTOL:g} of each coordinate's scale + {R.MOTION_ATOL:g} "
@@ -286,22 +318,28 @@ def write(tally, cases_gm, args, elapsed):
         f"differences of that reference, to {R.GRAD_RTOL:g}; linearisations against complex-step "
         f"derivatives of it, to {R.LIN_RTOL:g}; the gradient-check matrix against the reduced equation "
         f"and its sensitivity equations integrated by SciPy's LSODA, to {R.GM_RTOL:g}; fits against the "
-        "parameters that made the record; CSV records bit for bit;")
-    add("* **clear error** — an exception whose message names the offending argument (or, under "
-        "`jax.jit`, the in-graph error carrying the status message);")
-    add("* **failure status** — `sol.status` not success, with a message, NaN values and NaN "
+        "parameters that made the record; CSV records bit for bit;"
+    )
+    add(
+        "* **clear error** — an exception whose message names the offending argument (or, under "
+        "`jax.jit`, the in-graph error carrying the status message);"
+    )
+    add(
+        "* **failure status** — `sol.status` not success, with a message, NaN values and NaN "
         "gradients (`linearize`, which has no status: NaN in its result; `fit`: `converged=False` "
-        "with a message);")
+        "with a message);"
+    )
     add("* **unclear error** — an exception that names nothing the user passed;")
-    add("* **silent wrong** — success with a wrong answer, or success on an input that has no right "
-        "answer.")
+    add("* **silent wrong** — success with a wrong answer, or success on an input that has no right answer.")
     add("")
-    add("Each input case is an input class (a row below) drawn by Hypothesis (derandomised, so the "
+    add(
+        "Each input case is an input class (a row below) drawn by Hypothesis (derandomised, so the "
         "same cases on every run). The shafts family: two shafts coupled by a rolling contact with "
         "the ratio `R(t) = U + dU tanh(k (t − tsw))`, a third shaft on a spring, the constraint "
         "`R phi1' + a1 phi2' + a2 phi3' + b sin(w t) + nl phi1'² = 0`, kinetic energy "
         "`½ Σ J_i phi_i'² + K phi1' phi2'` and torques `M_i − c_i phi_i'`; every number is a "
-        "traced parameter. The locked family: two coordinates, two constraints (m = s).")
+        "traced parameter. The locked family: two coordinates, two constraints (m = s)."
+    )
     add("")
     total = collections.Counter()
     for v in tally.counts.values():
@@ -313,9 +351,11 @@ def write(tally, cases_gm, args, elapsed):
     add(f"**{sum(total.values())} cases**: " + ", ".join(f"{total[k]} {k}" for k in R.OUTCOMES) + ".")
     add("")
     unknown = len(tally.bad.get("UNKNOWN", []))
-    add(f"**Silent wrong answers: {n_sw}**, all of them instances of the known library issues listed "
+    add(
+        f"**Silent wrong answers: {n_sw}**, all of them instances of the known library issues listed "
         "below (reported, and marked xfail in the test suite with the issue's description)"
-        + ("." if not unknown else f"; **{unknown} outside any known issue** (see the last section)."))
+        + ("." if not unknown else f"; **{unknown} outside any known issue** (see the last section).")
+    )
     add(f"Unclear errors: {total[R.UNCLEAR_ERROR]}. Bad outcomes in all: {n_bad}.")
     add("")
     add("## The oracle is sharp")
@@ -324,14 +364,16 @@ def write(tally, cases_gm, args, elapsed):
     rheo = [r for r in sh if r[0]]
     caught = [r for r in rheo if r[1] == R.SILENT_WRONG]
     missed = [r[2] for r in rheo if r[1] != R.SILENT_WRONG]
-    add(f"`method=\"substituted\"` (the seed paper's shortcut, whose velocity term is twice too large) on "
+    add(
+        f'`method="substituted"` (the seed paper\'s shortcut, whose velocity term is twice too large) on '
         f"{len(sh)} cases of the valid class: of the {len(rheo)} with a rheonomic constraint (a changing ratio "
         f"or a b sin(w t) term, where it is wrong), the oracle calls {len(caught)} silent wrong (errors "
         f"{_fmt(min((r[2] for r in caught), default=0))}–{_fmt(max((r[2] for r in caught), default=0))} × the "
         f"allowed error); the other {len(missed)} are within the allowed error"
         + (f" (at most {max(missed):.2g} × it: a ratio change too slow to matter there)" if missed else "")
         + f". The {len(sh) - len(rheo)} with a scleronomic constraint, where the method is exact, are right. "
-        "These deliberate wrong answers are not counted below.")
+        "These deliberate wrong answers are not counted below."
+    )
     add("")
     add("## Known library issues found")
     add("")
@@ -353,12 +395,17 @@ def write(tally, cases_gm, args, elapsed):
         add("")
     add("## Cases of the known issues that came out well")
     add("")
-    add("Cases drawn in the territory of a known issue but with a good outcome (the issue shows only for "
-        "some of them; a failure status there may itself be the issue, e.g. a false refusal):")
+    add(
+        "Cases drawn in the territory of a known issue but with a good outcome (the issue shows only for "
+        "some of them; a failure status there may itself be the issue, e.g. a false refusal):"
+    )
     add("")
     for key, cnt in sorted(tally.flagged.items()):
-        add(f"* `{key}`: " + ", ".join(f"{n} {k}" for k, n in cnt.most_common())
-            + ("" if key in tally.bad else f" — {R.KNOWN_ISSUES.get(key, '')}"))
+        add(
+            f"* `{key}`: "
+            + ", ".join(f"{n} {k}" for k, n in cnt.most_common())
+            + ("" if key in tally.bad else f" — {R.KNOWN_ISSUES.get(key, '')}")
+        )
     add("")
     if "UNKNOWN" in tally.bad:
         add("## Bad outcomes outside the known issues")
@@ -372,17 +419,24 @@ def write(tally, cases_gm, args, elapsed):
         add("")
     add("## Outcomes per interface and class")
     add("")
-    add("| interface | class | cases | right | clear error | failure status | unclear error | silent wrong | "
-        "largest error of a right answer |")
+    add(
+        "| interface | class | cases | right | clear error | failure status | unclear error | silent wrong | "
+        "largest error of a right answer |"
+    )
     add("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for (api, cls), cnt in tally.counts.items():
-        add(f"| {api} | {cls} | {sum(cnt.values())} | " + " | ".join(str(cnt[k] or "") for k in R.OUTCOMES)
-            + f" | {_fmt(tally.largest.get((api, cls), 0.0))} |")
+        add(
+            f"| {api} | {cls} | {sum(cnt.values())} | "
+            + " | ".join(str(cnt[k] or "") for k in R.OUTCOMES)
+            + f" | {_fmt(tally.largest.get((api, cls), 0.0))} |"
+        )
     add("")
-    add("Largest error of a right answer: relative to the scale the check uses (motions: each "
+    add(
+        "Largest error of a right answer: relative to the scale the check uses (motions: each "
         "component's scale; gradients: the size of the directional derivative's terms; "
         "linearisations: max(1, max|A|); gradient matrix: the reference value). They show the "
-        "margin below the tolerances of the oracle.")
+        "margin below the tolerances of the oracle."
+    )
     add("")
     add("## The classes")
     add("")
@@ -392,19 +446,24 @@ def write(tally, cases_gm, args, elapsed):
             continue
         seen.add(cls)
         add(f"* **{cls}** — {what}")
-    add("* **wrong shape / wrong dtype / bad option / bad mechanism** — one case each: "
-        + "; ".join(label for _, label, _ in R.structural_table()) + ".")
+    add(
+        "* **wrong shape / wrong dtype / bad option / bad mechanism** — one case each: "
+        + "; ".join(label for _, label, _ in R.structural_table())
+        + "."
+    )
     add("* **Mechanism(...) bad arguments** — " + "; ".join(label for label, _, _ in R.MECHANISM_CONSTRUCTION) + ".")
     add("* **linearize bad option** — " + "; ".join(label for label, _, _ in R.LINEARIZE_OPTIONS) + ".")
     add("* **fit bad argument** — " + "; ".join(label for label, _, _ in R.fit_argument_cases()) + ".")
     add("")
     add("## The gradient-check matrix")
     add("")
-    add("The variator (shafts family, third shaft idle) with viscous damping at the rate c on shaft 1, "
+    add(
+        "The variator (shafts family, third shaft idle) with viscous damping at the rate c on shaft 1, "
         "the ratio step `U21 = 1.2 + 0.3 tanh(k (t − tsw))` and horizons of 2 s and 100 s; "
         "∂phi1(T)/∂c and ∂phi1(T)/∂J2 by `jax.grad` through `simulate` (default: forward "
         "sensitivities), by reverse mode (`diffrax.RecursiveCheckpointAdjoint`), and phi1(T) of the "
-        "plain solve.")
+        "plain solve."
+    )
     add("")
     add("| c (1/s) | k (1/s) | T (s) | default gradient | plain solve | reverse mode |")
     add("|---:|---:|---:|---|---|---|")
@@ -423,8 +482,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     started = time.process_time()
-    n = dict(eager=8, jit=3, batches=3, lin=4, fit=1, csv=5, bytes=50) if args.quick else \
-        dict(eager=60, jit=15, batches=12, lin=30, fit=3, csv=40, bytes=400)
+    n = (
+        dict(eager=8, jit=3, batches=3, lin=4, fit=1, csv=5, bytes=50)
+        if args.quick
+        else dict(eager=60, jit=15, batches=12, lin=30, fit=3, csv=40, bytes=400)
+    )
     tally = Tally()
     run_simulate(tally, n["eager"], n["jit"], n["batches"])
     run_sharpness(tally, n["eager"] // 2)
@@ -435,8 +497,11 @@ def main(argv=None):
     gm_reverse = R.run_gradient_matrix_reverse(cases_gm)
     tally.gm_rows = []
     for c, a, b, r in zip(cases_gm, gm_default, gm_eager, gm_reverse):
-        for api, o in (("gradient matrix: default (forward sensitivities)", a), ("gradient matrix: values, eager", b),
-                       ("gradient matrix: reverse mode", r)):
+        for api, o in (
+            ("gradient matrix: default (forward sensitivities)", a),
+            ("gradient matrix: values, eager", b),
+            ("gradient matrix: reverse mode", r),
+        ):
             tally.add(api, _gm_class(c), _gm_case(c), o, "")
         tally.gm_rows.append(tuple(_gm_cell(o) for o in (a, b, r)))
     run_fit(tally, n["fit"])

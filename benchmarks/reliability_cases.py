@@ -43,7 +43,12 @@ from jaxnh._status import STATUS
 
 
 RIGHT, CLEAR_ERROR, FAILURE, UNCLEAR_ERROR, SILENT_WRONG = (
-    "right", "clear error", "failure status", "unclear error", "silent wrong")
+    "right",
+    "clear error",
+    "failure status",
+    "unclear error",
+    "silent wrong",
+)
 OUTCOMES = (RIGHT, CLEAR_ERROR, FAILURE, UNCLEAR_ERROR, SILENT_WRONG)
 
 MOTION_RTOL = 1e-5
@@ -106,10 +111,50 @@ class Outcome:
 # (not positive definite for K² ≥ J1 J2 or a J ≤ 0), and torques
 #   Q_i = M_i − c_i phi_i' (− s3 phi3 for the third).
 
-SHAFTS_KEYS = ("J1", "J2", "J3", "K", "U", "dU", "k", "tsw", "a1", "a2", "b", "w", "nl",
-               "M1", "M2", "M3", "c1", "c2", "c3", "s3")
-SHAFTS_BASE = dict(J1=0.02, J2=0.05, J3=0.03, K=0.0, U=1.2, dU=0.0, k=1.0, tsw=1.0, a1=-1.0, a2=0.0, b=0.0,
-                   w=1.0, nl=0.0, M1=0.3, M2=-0.1, M3=0.05, c1=0.0, c2=0.0, c3=0.0, s3=0.0)
+SHAFTS_KEYS = (
+    "J1",
+    "J2",
+    "J3",
+    "K",
+    "U",
+    "dU",
+    "k",
+    "tsw",
+    "a1",
+    "a2",
+    "b",
+    "w",
+    "nl",
+    "M1",
+    "M2",
+    "M3",
+    "c1",
+    "c2",
+    "c3",
+    "s3",
+)
+SHAFTS_BASE = dict(
+    J1=0.02,
+    J2=0.05,
+    J3=0.03,
+    K=0.0,
+    U=1.2,
+    dU=0.0,
+    k=1.0,
+    tsw=1.0,
+    a1=-1.0,
+    a2=0.0,
+    b=0.0,
+    w=1.0,
+    nl=0.0,
+    M1=0.3,
+    M2=-0.1,
+    M3=0.05,
+    c1=0.0,
+    c2=0.0,
+    c3=0.0,
+    s3=0.0,
+)
 THETA = ("J2", "c1")
 """The parameters differentiated in the gradient checks (the others are held fixed): an inertia and
 a damping coefficient, those of the gradient-check matrix. Each differentiated parameter adds its
@@ -133,21 +178,23 @@ def shafts_kinetic(q, qd, t, p):
 
 
 def shafts_constraint(q, qd, t, p):
-    return jnp.stack([ratio(t, p) * qd[0] + p["a1"] * qd[1] + p["a2"] * qd[2] + p["b"] * jnp.sin(p["w"] * t)
-                      + p["nl"] * qd[0] ** 2])
+    return jnp.stack(
+        [ratio(t, p) * qd[0] + p["a1"] * qd[1] + p["a2"] * qd[2] + p["b"] * jnp.sin(p["w"] * t) + p["nl"] * qd[0] ** 2]
+    )
 
 
 def shafts_forces(q, qd, t, p):
     return jnp.stack([p["M1"] - p["c1"] * qd[0], p["M2"] - p["c2"] * qd[1], p["M3"] - p["c3"] * qd[2] - p["s3"] * q[2]])
 
 
-SHAFTS = nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, forces=shafts_forces,
-                      names=("phi1", "phi2", "phi3"))
+SHAFTS = nh.Mechanism(
+    shafts_kinetic, constraints=shafts_constraint, forces=shafts_forces, names=("phi1", "phi2", "phi3")
+)
 
 
 def shafts_qd0(p, w0, v3, t0, xp=jnp):
     """Velocities meeting the constraint at t0: phi1' = w0, phi3' = v3, phi2' solved (0 when a1 = 0)."""
-    rest = ratio(t0, p, xp) * w0 + p["a2"] * v3 + p["b"] * xp.sin(p["w"] * t0) + p["nl"] * w0 ** 2
+    rest = ratio(t0, p, xp) * w0 + p["a2"] * v3 + p["b"] * xp.sin(p["w"] * t0) + p["nl"] * w0**2
     a1 = p["a1"]
     safe = xp.where(a1 != 0, a1, 1.0)
     return xp.stack([w0 + 0.0 * a1, xp.where(a1 != 0, -rest / safe, 0.0), v3 + 0.0 * a1])
@@ -170,8 +217,15 @@ class ShaftsModel:
 
     @staticmethod
     def value(q, qd, t, p):
-        return np.array([ratio(t, p, np) * qd[0] + p["a1"] * qd[1] + p["a2"] * qd[2] + p["b"] * np.sin(p["w"] * t)
-                         + p["nl"] * qd[0] ** 2])
+        return np.array(
+            [
+                ratio(t, p, np) * qd[0]
+                + p["a1"] * qd[1]
+                + p["a2"] * qd[2]
+                + p["b"] * np.sin(p["w"] * t)
+                + p["nl"] * qd[0] ** 2
+            ]
+        )
 
     @staticmethod
     def dt(q, qd, t, p):
@@ -181,8 +235,9 @@ class ShaftsModel:
 
     @staticmethod
     def forces(q, qd, t, p):
-        return np.array([p["M1"] - p["c1"] * qd[0], p["M2"] - p["c2"] * qd[1],
-                         p["M3"] - p["c3"] * qd[2] - p["s3"] * q[2]])
+        return np.array(
+            [p["M1"] - p["c1"] * qd[0], p["M2"] - p["c2"] * qd[1], p["M3"] - p["c3"] * qd[2] - p["s3"] * q[2]]
+        )
 
 
 # =====================================================================================
@@ -197,8 +252,12 @@ def locked_kinetic(q, qd, t, p):
 
 
 def locked_constraint(q, qd, t, p):
-    return jnp.stack([p["A00"] * qd[0] + p["A01"] * qd[1] + p["b0"] * jnp.sin(t) + p["e0"],
-                      p["A10"] * qd[0] + p["A11"] * qd[1] + p["b1"] * jnp.sin(t) + p["e1"]])
+    return jnp.stack(
+        [
+            p["A00"] * qd[0] + p["A01"] * qd[1] + p["b0"] * jnp.sin(t) + p["e0"],
+            p["A10"] * qd[0] + p["A11"] * qd[1] + p["b1"] * jnp.sin(t) + p["e1"],
+        ]
+    )
 
 
 LOCKED = nh.Mechanism(locked_kinetic, constraints=locked_constraint, names=("x1", "x2"))
@@ -402,11 +461,27 @@ def _f(x):
 def value_case(cls, theta, rest, w0, v3, delta, q0, ts, *, what="", valid=True, known="", names=r"$^"):
     """A shafts case given by values (batchable under vmap, differentiable in theta)."""
     p = {**rest, **theta}
-    qd0 = np.asarray(shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3),
-                                np.float64(ts[0]), np), float) + np.asarray(delta, float)
-    return Case(cls, "shafts", params=p, q0=np.asarray(q0, float), qd0=qd0, ts=np.asarray(ts, float), what=what,
-                valid=valid, known=known, names=names, theta=dict(theta), rest=dict(rest), w0=w0, v3=v3,
-                delta=np.asarray(delta, float))
+    qd0 = np.asarray(
+        shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3), np.float64(ts[0]), np),
+        float,
+    ) + np.asarray(delta, float)
+    return Case(
+        cls,
+        "shafts",
+        params=p,
+        q0=np.asarray(q0, float),
+        qd0=qd0,
+        ts=np.asarray(ts, float),
+        what=what,
+        valid=valid,
+        known=known,
+        names=names,
+        theta=dict(theta),
+        rest=dict(rest),
+        w0=w0,
+        v3=v3,
+        delta=np.asarray(delta, float),
+    )
 
 
 # --- strategies ------------------------------------------------------------------------
@@ -416,8 +491,7 @@ def draw(strategy, n: int):
     """n examples of a strategy, derandomised (the same ones on every run, for tests and report alike)."""
     out = []
 
-    @settings(derandomize=True, database=None, deadline=None, max_examples=n,
-              suppress_health_check=list(HealthCheck))
+    @settings(derandomize=True, database=None, deadline=None, max_examples=n, suppress_health_check=list(HealthCheck))
     @given(strategy)
     def collect(x):
         out.append(x)
@@ -426,10 +500,9 @@ def draw(strategy, n: int):
     return out
 
 
-
 def logu(lo, hi):
     """Log-uniform floats in [lo, hi] (lo > 0)."""
-    return st.floats(math.log10(lo), math.log10(hi)).map(lambda e: 10.0 ** e)
+    return st.floats(math.log10(lo), math.log10(hi)).map(lambda e: 10.0**e)
 
 
 def signed(lo, hi):
@@ -452,13 +525,24 @@ def physical(draw):
     nothing degenerate (speeds, torques and start of both signs, bounded away from zero)."""
     J = [draw(logu(1e-3, 1.0)) for _ in range(3)]
     p = dict(SHAFTS_BASE)
-    p.update(J1=J[0], J2=J[1], J3=J[2], K=draw(st.floats(-0.5, 0.5)) * math.sqrt(J[0] * J[1]),
-             U=draw(signed(0.3, 3.0)), dU=draw(st.floats(0.0, 0.2)), k=draw(logu(0.1, 20.0)),
-             tsw=draw(st.floats(-1.0, 3.0)), a1=-draw(st.floats(0.5, 2.0)),
-             a2=draw(st.sampled_from([0.0, 0.0, 1.0])) * draw(st.floats(-0.5, 0.5)),
-             b=draw(st.sampled_from([0.0, 1.0])) * draw(st.floats(-1.0, 1.0)), w=draw(st.floats(0.5, 4.0)),
-             M1=draw(signed(0.05, 1.0)), M2=draw(signed(0.05, 1.0)), M3=draw(signed(0.05, 1.0)),
-             s3=draw(st.floats(0.0, 2.0)))
+    p.update(
+        J1=J[0],
+        J2=J[1],
+        J3=J[2],
+        K=draw(st.floats(-0.5, 0.5)) * math.sqrt(J[0] * J[1]),
+        U=draw(signed(0.3, 3.0)),
+        dU=draw(st.floats(0.0, 0.2)),
+        k=draw(logu(0.1, 20.0)),
+        tsw=draw(st.floats(-1.0, 3.0)),
+        a1=-draw(st.floats(0.5, 2.0)),
+        a2=draw(st.sampled_from([0.0, 0.0, 1.0])) * draw(st.floats(-0.5, 0.5)),
+        b=draw(st.sampled_from([0.0, 1.0])) * draw(st.floats(-1.0, 1.0)),
+        w=draw(st.floats(0.5, 4.0)),
+        M1=draw(signed(0.05, 1.0)),
+        M2=draw(signed(0.05, 1.0)),
+        M3=draw(signed(0.05, 1.0)),
+        s3=draw(st.floats(0.0, 2.0)),
+    )
     for i, Ji in zip((1, 2, 3), J):  # viscous damping up to 20/s (rate c_i/J_i): not stiff for Tsit5 at rtol 1e-8
         p[f"c{i}"] = Ji * draw(st.floats(0.0, 20.0))
     w0 = draw(signed(0.3, 3.0))
@@ -473,8 +557,15 @@ def split(p):
 
 
 VALUE_CLASSES = (
-    "valid", "tiny velocities", "steep ratio step", "non-finite value", "inertia not positive",
-    "singular mass matrix", "velocity-free constraint", "undeclared nonlinear constraint", "inconsistent qd0",
+    "valid",
+    "tiny velocities",
+    "steep ratio step",
+    "non-finite value",
+    "inertia not positive",
+    "singular mass matrix",
+    "velocity-free constraint",
+    "undeclared nonlinear constraint",
+    "inconsistent qd0",
     "report times not increasing",
 )
 """Classes of the shafts family that vary values only: eager, jit, vmap and grad all run them."""
@@ -497,8 +588,11 @@ def value_cases(draw, cls=None):
         q0 = q0 * scale
         what = "velocities, torques, rheonomic term and start scaled by 1e-300..1e-6"
     elif cls == "steep ratio step":
-        p.update(dU=draw(st.floats(0.1, 0.5)) * abs(p["U"]), k=draw(logu(20.0, 1e4)),
-                 tsw=float(ts[0] + draw(st.floats(0.05, 0.95)) * (ts[-1] - ts[0])))
+        p.update(
+            dU=draw(st.floats(0.1, 0.5)) * abs(p["U"]),
+            k=draw(logu(20.0, 1e4)),
+            tsw=float(ts[0] + draw(st.floats(0.05, 0.95)) * (ts[-1] - ts[0])),
+        )
         what = "ratio step U ± dU tanh(k (t − tsw)), k = 20..1e4 /s, inside the run"
     elif cls == "non-finite value":
         bad = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
@@ -547,11 +641,14 @@ def value_cases(draw, cls=None):
             p["a2"] = 0.0
             eps = draw(logu(1e-9, 1e-2))
             known = "large-other-velocity-hides-violation"
-        qd_ok = np.asarray(shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3),
-                                      np.float64(ts[0]), np))
+        qd_ok = np.asarray(
+            shafts_qd0({k: np.float64(v) for k, v in p.items()}, np.float64(w0), np.float64(v3), np.float64(ts[0]), np)
+        )
         delta = np.array([0.0, eps * (abs(qd_ok[1]) + abs(w0) * abs(ratio(ts[0], p, np))) + 1e-300 * (w0 == 0), 0.0])
-        what = ("phi2'(t0) off the constraint by a fraction 1e-12..1 of its size; at tiny scale (1e-300..1e-8); "
-                "or with a large unconstrained phi3' (1e2..1e8)")
+        what = (
+            "phi2'(t0) off the constraint by a fraction 1e-12..1 of its size; at tiny scale (1e-300..1e-8); "
+            "or with a large unconstrained phi3' (1e2..1e8)"
+        )
     elif cls == "report times not increasing":
         ts = ts.copy()
         i = draw(st.integers(1, N_TS - 1))
@@ -585,7 +682,7 @@ def _int_T(q, qd, t, p):
 
 
 def _vector_T(q, qd, t, p):
-    return 0.5 * p["J1"] * qd ** 2
+    return 0.5 * p["J1"] * qd**2
 
 
 def _three_constraints(q, qd, t, p):
@@ -605,8 +702,24 @@ def structural_table():
         base = dict(params=p, q0=q0, qd0=qd0, ts=ts)
         call = {k: kw.pop(k) for k in list(kw) if k in base}
         base.update(call)
-        out.append((cls, label, Case(cls, "shafts", names=names, valid=valid, known=known, mech=mech, kw=kw,
-                                     what=label, new_program=new_program, **base)))
+        out.append(
+            (
+                cls,
+                label,
+                Case(
+                    cls,
+                    "shafts",
+                    names=names,
+                    valid=valid,
+                    known=known,
+                    mech=mech,
+                    kw=kw,
+                    what=label,
+                    new_program=new_program,
+                    **base,
+                ),
+            )
+        )
 
     Q = r"\bq0?\b|\bqd0?\b"
     # wrong shapes
@@ -618,30 +731,57 @@ def structural_table():
     add("wrong shape", "ts of one time", r"\bts\b", ts=ts[:1])
     add("wrong shape", "empty ts", r"\bts\b", ts=ts[:0])
     add("wrong shape", "a parameter of shape (2,)", r"kinetic|params", params={**p, "J1": np.array([0.02, 0.03])})
-    add("wrong shape", "a parameter missing", r"kinetic|constraints|forces|'J2'|J2",
-        params={k: v for k, v in p.items() if k != "J2"})
+    add(
+        "wrong shape",
+        "a parameter missing",
+        r"kinetic|constraints|forces|'J2'|J2",
+        params={k: v for k, v in p.items() if k != "J2"},
+    )
     # wrong dtypes
-    add("wrong dtype", "integer q0 (valid: taken as float)", Q, q0=np.zeros(3, dtype=np.int64), valid=True,
-        new_program=True)
-    add("wrong dtype", "integer ts (valid: taken as float)", r"\bts\b", ts=np.arange(N_TS), valid=True,
-        new_program=True)
-    add("wrong dtype", "integer-valued parameter (valid)", r"$^", params={**p, "J3": 1}, valid=True,
-        new_program=True)
-    add("wrong dtype", "float32 q0 with the default rtol 1e-8 (below float32's resolution)", r"rtol|float32",
-        q0=np.zeros(3, dtype=np.float32))
-    add("wrong dtype", "float32 q0, qd0, ts with rtol=1e-5 (valid)", r"$^", q0=np.zeros(3, dtype=np.float32),
-        qd0=qd0.astype(np.float32), ts=ts.astype(np.float32), rtol=1e-5, atol=1e-7, valid=True, new_program=True)
+    add(
+        "wrong dtype",
+        "integer q0 (valid: taken as float)",
+        Q,
+        q0=np.zeros(3, dtype=np.int64),
+        valid=True,
+        new_program=True,
+    )
+    add(
+        "wrong dtype", "integer ts (valid: taken as float)", r"\bts\b", ts=np.arange(N_TS), valid=True, new_program=True
+    )
+    add("wrong dtype", "integer-valued parameter (valid)", r"$^", params={**p, "J3": 1}, valid=True, new_program=True)
+    add(
+        "wrong dtype",
+        "float32 q0 with the default rtol 1e-8 (below float32's resolution)",
+        r"rtol|float32",
+        q0=np.zeros(3, dtype=np.float32),
+    )
+    add(
+        "wrong dtype",
+        "float32 q0, qd0, ts with rtol=1e-5 (valid)",
+        r"$^",
+        q0=np.zeros(3, dtype=np.float32),
+        qd0=qd0.astype(np.float32),
+        ts=ts.astype(np.float32),
+        rtol=1e-5,
+        atol=1e-7,
+        valid=True,
+        new_program=True,
+    )
     add("wrong dtype", "complex q0", Q + r"|complex|dtype", q0=np.array([0.1 + 0.5j, 0.0, 0.0]), new_program=True)
     add("wrong dtype", "complex qd0", Q + r"|complex|dtype", qd0=qd0 + np.array([0.0, 0.0, 0.3j]), new_program=True)
     add("wrong dtype", "complex ts", r"\bts\b|complex|dtype", ts=ts + 0.1j, new_program=True)
-    add("wrong dtype", "complex parameter", r"params|J1", params={**p, "J1": 0.02 + 0.01j},
-        known="complex-parameter-unclear")
+    add(
+        "wrong dtype",
+        "complex parameter",
+        r"params|J1",
+        params={**p, "J1": 0.02 + 0.01j},
+        known="complex-parameter-unclear",
+    )
     add("wrong dtype", "string q0", Q, q0="0 0 0")
     add("wrong dtype", "string parameter", r"params|J1|kinetic", params={**p, "J1": "0.02"})
-    add("wrong dtype", "boolean q0 (taken as 0/1)", Q, q0=np.array([True, False, False]), valid=True,
-        new_program=True)
-    add("wrong dtype", "object array ts", r"\bts\b", ts=np.array(list(ts) + [None])[:-1].astype(object),
-        valid=True)
+    add("wrong dtype", "boolean q0 (taken as 0/1)", Q, q0=np.array([True, False, False]), valid=True, new_program=True)
+    add("wrong dtype", "object array ts", r"\bts\b", ts=np.array(list(ts) + [None])[:-1].astype(object), valid=True)
     # options
     for v in (-1.0, math.nan, "1e-8", None, 1e-20):
         add("bad option", f"rtol={v!r}", r"rtol", rtol=v)
@@ -672,12 +812,24 @@ def structural_table():
     # mechanisms
     add("bad mechanism", "integer-valued T", r"kinetic", mech=nh.Mechanism(_int_T, constraints=shafts_constraint))
     add("bad mechanism", "T returns a vector", r"kinetic", mech=nh.Mechanism(_vector_T, constraints=shafts_constraint))
-    add("bad mechanism", "m = 4 > s = 3", r"constraints|m=4|m ≤ s",
-        mech=nh.Mechanism(shafts_kinetic, constraints=_three_constraints))
-    add("bad mechanism", "forces of the wrong length", r"forces",
-        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, forces=_bad_forces))
-    add("bad mechanism", "names of the wrong length", r"names",
-        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, names=("a", "b")))
+    add(
+        "bad mechanism",
+        "m = 4 > s = 3",
+        r"constraints|m=4|m ≤ s",
+        mech=nh.Mechanism(shafts_kinetic, constraints=_three_constraints),
+    )
+    add(
+        "bad mechanism",
+        "forces of the wrong length",
+        r"forces",
+        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, forces=_bad_forces),
+    )
+    add(
+        "bad mechanism",
+        "names of the wrong length",
+        r"names",
+        mech=nh.Mechanism(shafts_kinetic, constraints=shafts_constraint, names=("a", "b")),
+    )
     return out
 
 
@@ -700,11 +852,21 @@ def locked_cases(draw):
     """m = s: both rows regular (a right answer by Lagrange), parallel rows (redundant), or nearly parallel."""
     kind = draw(st.sampled_from(["m = s", "redundant", "nearly redundant"]))
     p = dict(LOCKED_BASE)
-    p.update(J1=draw(logu(0.1, 10.0)), J2=draw(logu(0.1, 10.0)), A00=draw(st.floats(0.5, 2.0)),
-             A01=draw(st.floats(-2.0, 2.0)), b0=draw(st.floats(-1.0, 1.0)), e0=draw(st.floats(-1.0, 1.0)))
+    p.update(
+        J1=draw(logu(0.1, 10.0)),
+        J2=draw(logu(0.1, 10.0)),
+        A00=draw(st.floats(0.5, 2.0)),
+        A01=draw(st.floats(-2.0, 2.0)),
+        b0=draw(st.floats(-1.0, 1.0)),
+        e0=draw(st.floats(-1.0, 1.0)),
+    )
     if kind == "m = s":
-        p.update(A10=draw(st.floats(-1.0, 1.0)), A11=draw(st.floats(0.5, 2.0)) * draw(st.sampled_from([1, -1])),
-                 b1=draw(st.floats(-1.0, 1.0)), e1=draw(st.floats(-1.0, 1.0)))
+        p.update(
+            A10=draw(st.floats(-1.0, 1.0)),
+            A11=draw(st.floats(0.5, 2.0)) * draw(st.sampled_from([1, -1])),
+            b1=draw(st.floats(-1.0, 1.0)),
+            e1=draw(st.floats(-1.0, 1.0)),
+        )
         if abs(p["A00"] * p["A11"] - p["A01"] * p["A10"]) < 0.1:
             p["A11"] += 1.0 if p["A11"] > 0 else -1.0
     else:
@@ -719,11 +881,12 @@ def locked_cases(draw):
     if kind != "m = s":
         qd0 = qd0 + draw(st.floats(-2.0, 2.0)) * np.array([-p["A01"], p["A00"]])
     q0 = np.asarray(draw(st.lists(st.floats(-1.0, 1.0), min_size=2, max_size=2)))
-    what = {"m = s": "two regular constraints on two coordinates (no freedom left: the motion is prescribed)",
-            "redundant": "second row a multiple of the first (rank 1)",
-            "nearly redundant": "second row a multiple of the first plus 1e-14..1e-6"}[kind]
-    return Case(f"locked: {kind}", "locked", params=p, q0=q0, qd0=qd0, ts=ts, what=what,
-                names=r"method|constraint")
+    what = {
+        "m = s": "two regular constraints on two coordinates (no freedom left: the motion is prescribed)",
+        "redundant": "second row a multiple of the first (rank 1)",
+        "nearly redundant": "second row a multiple of the first plus 1e-14..1e-6",
+    }[kind]
+    return Case(f"locked: {kind}", "locked", params=p, q0=q0, qd0=qd0, ts=ts, what=what, names=r"method|constraint")
 
 
 # =====================================================================================
@@ -765,8 +928,9 @@ def judge_error(case: Case, exc: BaseException) -> Outcome:
 
 
 def _params_for_call(p):
-    return {k: (float(v) if isinstance(v, (np.floating, float)) and not isinstance(v, bool) else v)
-            for k, v in p.items()}
+    return {
+        k: (float(v) if isinstance(v, (np.floating, float)) and not isinstance(v, bool) else v) for k, v in p.items()
+    }
 
 
 def run_eager(case: Case) -> Outcome:
@@ -885,17 +1049,28 @@ def judge_gradient(case: Case, grad: dict, h: float = 1e-4) -> Outcome:
     err = abs(gv - fd) / (GRAD_RTOL * (abs(fd) + np.sum(np.abs(gv_terms))) + floor)
     if np.isfinite(gv) and err <= 1.0:
         return Outcome(RIGHT, f"gradient error {err * GRAD_RTOL:.1e}", err * GRAD_RTOL)
-    return Outcome(SILENT_WRONG, f"success but gradient along v {gv:.6g} vs reference {fd:.6g} "
-                   f"({err:.3g} × the allowed error)", err * GRAD_RTOL)
+    return Outcome(
+        SILENT_WRONG,
+        f"success but gradient along v {gv:.6g} vs reference {fd:.6g} ({err:.3g} × the allowed error)",
+        err * GRAD_RTOL,
+    )
 
 
 def stack_cases(cases, weights=(W_Q, W_QD)):
     f = lambda xs: jnp.asarray(np.stack([np.asarray(x, float) for x in xs]))  # noqa: E731
     theta = {k: f([c.theta[k] for c in cases]) for k in THETA}
     rest = {k: f([c.rest[k] for c in cases]) for k in cases[0].rest}
-    return (theta, rest, f([c.w0 for c in cases]), f([c.v3 for c in cases]), f([c.delta for c in cases]),
-            f([c.q0 for c in cases]), f([c.ts for c in cases]), f([weights[0]] * len(cases)),
-            f([weights[1]] * len(cases)))
+    return (
+        theta,
+        rest,
+        f([c.w0 for c in cases]),
+        f([c.v3 for c in cases]),
+        f([c.delta for c in cases]),
+        f([c.q0 for c in cases]),
+        f([c.ts for c in cases]),
+        f([weights[0]] * len(cases)),
+        f([weights[1]] * len(cases)),
+    )
 
 
 def batched(cases, weights=(W_Q, W_QD)):
@@ -903,7 +1078,7 @@ def batched(cases, weights=(W_Q, W_QD)):
     (the last one padded by repeating its first case)."""
     out = []
     for i in range(0, len(cases), BATCH):
-        chunk = list(cases[i:i + BATCH])
+        chunk = list(cases[i : i + BATCH])
         n = len(chunk)
         chunk += [chunk[0]] * (BATCH - n)
         (_, (q, qd, status)), grad = VALUE_AND_GRAD(*stack_cases(chunk, weights))
@@ -920,8 +1095,11 @@ def run_vmap_grad(cases):
         value = judge_solution(c, q, qd, code, nh._status.describe(code))
         if code != 0:
             finite = [k for k in THETA if np.isfinite(g[k])]
-            gradient = (Outcome(FAILURE, "NaN gradient with the failure status") if not finite else
-                        Outcome(SILENT_WRONG, f"failure status but finite gradient in {finite}"))
+            gradient = (
+                Outcome(FAILURE, "NaN gradient with the failure status")
+                if not finite
+                else Outcome(SILENT_WRONG, f"failure status but finite gradient in {finite}")
+            )
         elif value.kind != RIGHT:
             gradient = value
         else:
@@ -947,8 +1125,9 @@ def lin_reference(case: Case, speeds):
     `[[M, −Aᵀ], [A, 0]]` or the dependent block of A singular to 1e-12)."""
     p = {k: float(v) for k, v in case.params.items()}
     q, qd, t = np.asarray(case.q0, float), np.asarray(case.qd0, float), float(case.ts[0])
-    if not (all(np.isfinite(list(p.values()))) and np.all(np.isfinite(q)) and np.all(np.isfinite(qd))
-            and np.isfinite(t)):
+    if not (
+        all(np.isfinite(list(p.values()))) and np.all(np.isfinite(q)) and np.all(np.isfinite(qd)) and np.isfinite(t)
+    ):
         return None
     M, A = ShaftsModel.mass(q, t, p), ShaftsModel.jac(q, qd, t, p)
     kkt = np.block([[M, -A.T], [A, np.zeros((1, 1))]])
@@ -1007,8 +1186,11 @@ LINEARIZE_OPTIONS = (
     ("coordinates=(3,)", dict(coordinates=(3,)), r"coordinates"),
     ("method='substituted'", dict(method="substituted"), r"method"),
     ("accelerations of shape (3,)", dict(accelerations=np.zeros(3)), r"accelerations"),
-    ("speeds=(0, 2), the dependent phi2' with coefficient a1 = 0", dict(speeds=(0, 2), _params=dict(a1=0.0)),
-     r"speeds|dependent|constraint"),
+    (
+        "speeds=(0, 2), the dependent phi2' with coefficient a1 = 0",
+        dict(speeds=(0, 2), _params=dict(a1=0.0)),
+        r"speeds|dependent|constraint",
+    ),
 )
 
 
@@ -1052,8 +1234,11 @@ def fit_argument_cases():
         ("rtol='fast'", dict(rtol="fast"), r"rtol"),
         ("rtol=-1", dict(rtol=-1.0, _optimises=True), r"rtol"),
         ("differentiation='backward'", dict(differentiation="backward"), r"differentiation"),
-        ("differentiation='reverse' with Levenberg–Marquardt", dict(differentiation="reverse"),
-         r"differentiation|reverse"),
+        (
+            "differentiation='reverse' with Levenberg–Marquardt",
+            dict(differentiation="reverse"),
+            r"differentiation|reverse",
+        ),
         ("method='euler'", dict(method="euler"), r"method"),
         ("q0 of 4 coordinates", dict(q0=np.zeros(4)), r"\bq0?\b|names|coordinates"),
         ("data is an array", dict(data=np.zeros((41, 4))), r"data|Record"),
@@ -1071,8 +1256,16 @@ FIT_KNOWN = {
 
 
 def run_fit(label, overrides, names, record, qd0) -> Outcome:
-    kw = dict(mech=SHAFTS, params=dict(FIT_TRUTH, J2=0.07, c2=0.05), data=record, free=("J2", "c2"),
-              positive=("J2",), noise=1e-6, q0=np.zeros(3), qd0=qd0)
+    kw = dict(
+        mech=SHAFTS,
+        params=dict(FIT_TRUTH, J2=0.07, c2=0.05),
+        data=record,
+        free=("J2", "c2"),
+        positive=("J2",),
+        noise=1e-6,
+        q0=np.zeros(3),
+        qd0=qd0,
+    )
     kw.update({k: v for k, v in overrides.items() if not k.startswith("_")})
     case = Case("fit", names=names)
     try:
@@ -1089,8 +1282,9 @@ def judge_fit(r, truth: Optional[dict]) -> Outcome:
         return Outcome(SILENT_WRONG, f"converged on an input that has no right answer: {r.message[:60]}")
     errs = {k: abs(r.estimates[k]["value"] / v - 1) for k, v in truth.items()}
     if max(errs.values()) <= 1e-5:
-        return Outcome(RIGHT, "relative errors " + ", ".join(f"{k} {e:.0e}" for k, e in errs.items()),
-                       max(errs.values()))
+        return Outcome(
+            RIGHT, "relative errors " + ", ".join(f"{k} {e:.0e}" for k, e in errs.items()), max(errs.values())
+        )
     return Outcome(SILENT_WRONG, f"converged but off: {errs}", max(errs.values()))
 
 
@@ -1132,13 +1326,26 @@ def gradient_matrix_cases(damping=GM_DAMPING, steepness=GM_STEEPNESS, horizons=G
             for T in horizons:
                 tsw = 1.0 if k < 10 else 0.7 * T + 0.0123  # a fast step late in the run, between report times
                 p = dict(J1=0.02, J2=0.05, U0=1.2, dU=0.3, k=k, tsw=tsw, M1=0.3, M2=-0.1, c=c)
-                sp = dict(SHAFTS_BASE, J1=p["J1"], J2=p["J2"], U=p["U0"], dU=p["dU"], k=k, tsw=tsw, a1=-1.0,
-                          M1=p["M1"], M2=p["M2"], M3=0.0, c1=c * p["J1"])
+                sp = dict(
+                    SHAFTS_BASE,
+                    J1=p["J1"],
+                    J2=p["J2"],
+                    U=p["U0"],
+                    dU=p["dU"],
+                    k=k,
+                    tsw=tsw,
+                    a1=-1.0,
+                    M1=p["M1"],
+                    M2=p["M2"],
+                    M3=0.0,
+                    c1=c * p["J1"],
+                )
                 ts = np.linspace(0.0, T, N_TS)
                 case = value_case("gradient matrix", *split(sp), 2.0, 0.0, np.zeros(3), np.zeros(3), ts)
                 known = "steep-step-skipped" if k >= 1e6 else ""
-                out.append(dict(p=p, w0=2.0, T=T, known=known, case=case,
-                                label=f"c = {c:.0e} /s, k = {k:.0e} /s, T = {T:g} s"))
+                out.append(
+                    dict(p=p, w0=2.0, T=T, known=known, case=case, label=f"c = {c:.0e} /s, k = {k:.0e} /s, T = {T:g} s")
+                )
     return out
 
 
@@ -1192,12 +1399,18 @@ def run_gradient_matrix(cases):
         err = np.abs(got - ref) / np.abs(ref)
         names = ("phi1(T)", "∂/∂c", "∂/∂J2")
         if np.all(err <= GM_RTOL):
-            out.append(Outcome(RIGHT, f"errors {', '.join(f'{n} {e:.0e}' for n, e in zip(names, err))}",
-                               float(np.max(err))))
+            out.append(
+                Outcome(RIGHT, f"errors {', '.join(f'{n} {e:.0e}' for n, e in zip(names, err))}", float(np.max(err)))
+            )
         else:
             worst = int(np.argmax(err))
-            out.append(Outcome(SILENT_WRONG, f"success but {names[worst]} = {got[worst]:.6g}, reference "
-                               f"{ref[worst]:.6g}", float(np.max(err))))
+            out.append(
+                Outcome(
+                    SILENT_WRONG,
+                    f"success but {names[worst]} = {got[worst]:.6g}, reference {ref[worst]:.6g}",
+                    float(np.max(err)),
+                )
+            )
     return out
 
 
@@ -1209,13 +1422,21 @@ def run_gradient_matrix_eager(cases):
         sol = nh.simulate(SHAFTS, _params_for_call(case.params), case.q0, case.qd0, case.ts, throw=False)
         code = _status_code(sol)
         if code != 0:
-            out.append(Outcome(FAILURE, sol.message[:80]) if not np.isfinite(float(sol.q[-1, 0]))
-                       else Outcome(SILENT_WRONG, "failure status with a finite value"))
+            out.append(
+                Outcome(FAILURE, sol.message[:80])
+                if not np.isfinite(float(sol.q[-1, 0]))
+                else Outcome(SILENT_WRONG, "failure status with a finite value")
+            )
             continue
         ref = gm_reference(c["p"], c["w0"], c["T"])[0]
         err = abs(float(sol.q[-1, 0]) - ref) / abs(ref)
-        out.append(Outcome(RIGHT if err <= GM_RTOL else SILENT_WRONG,
-                           f"phi1(T) = {float(sol.q[-1, 0]):.8g}, reference {ref:.8g}", err))
+        out.append(
+            Outcome(
+                RIGHT if err <= GM_RTOL else SILENT_WRONG,
+                f"phi1(T) = {float(sol.q[-1, 0]):.8g}, reference {ref:.8g}",
+                err,
+            )
+        )
     return out
 
 
@@ -1226,7 +1447,7 @@ def run_gradient_matrix_reverse(cases):
         _REVERSE["p"] = jax.jit(jax.vmap(jax.value_and_grad(_reverse_final, has_aux=True)))
     res = []
     for i in range(0, len(cases), BATCH):
-        chunk = [c["case"] for c in cases[i:i + BATCH]]
+        chunk = [c["case"] for c in cases[i : i + BATCH]]
         n = len(chunk)
         chunk += [chunk[0]] * (BATCH - n)
         (value, status), g = _REVERSE["p"](*stack_cases(chunk, GM_WEIGHTS))
@@ -1261,28 +1482,35 @@ def _reverse_final(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
 KNOWN_ISSUES = {
     "complex-parameter-unclear": (
         "a complex parameter fails inside jax.hessian with JAX's 'jacrev requires real-valued outputs', "
-        "which names neither the parameter nor `kinetic`."),
+        "which names neither the parameter nor `kinetic`."
+    ),
     "fit-nan-qd0-unclear": (
         "fit(qd0=[nan, ...]) raises 'the 1 constraints are linearly dependent at this state', a wrong "
-        "diagnosis that does not name qd0 or the NaN."),
+        "diagnosis that does not name qd0 or the NaN."
+    ),
     "fit-nan-start-not-refused": (
         "fit with a NaN starting value of a free parameter is not refused: the optimiser 'stops on its "
-        "tolerances' at once and the result says the simulation failed (converged=False)."),
+        "tolerances' at once and the result says the simulation failed (converged=False)."
+    ),
     "fit-bad-rtol-not-refused": (
         "fit(rtol=-1) is not refused: the Levenberg–Marquardt solve runs (and compiles, ≈ 20 s) and ends "
-        "with converged=False and 'optimistix stopped: result code 2' (simulate itself refuses rtol=-1)."),
+        "with converged=False and 'optimistix stopped: result code 2' (simulate itself refuses rtol=-1)."
+    ),
     "linearize-traced-nonlinear": (
         "linearize under jit/vmap (traced inputs) skips the check of undeclared nonlinear constraints and "
-        "returns a finite, wrong state matrix."),
+        "returns a finite, wrong state matrix."
+    ),
     "near-redundant-accepted": (
         "nearly parallel constraint rows: qd0 passes the consistency check (relative to ‖A_k‖·‖qd0‖) while it "
         "is far from the constraint manifold in the ill-conditioned direction; 'lagrange' keeps the violation "
-        "and reports success."),
+        "and reports success."
+    ),
     "steep-step-skipped": (
         "a ratio step much shorter than the solver's steps (a tanh step of width 0.1 µs, k = 1e7 /s, with "
         "light damping, c = 1..10 /s) is stepped over: success, phi1(T) off by up to 2 % and ∂phi1/∂J2 by up "
         "to 94 %. simulate's docstring says to keep dtmax below the width of such a change; nothing in the "
-        "result says it was stepped over."),
+        "result says it was stepped over."
+    ),
     "underflow-scales": (
         "velocities below ≈ 1e-154, whose squares underflow: (a) consistent velocities are refused with "
         "inconsistent_velocities (the check's ‖qd0‖, jnp.linalg.norm, underflows to 0, so the allowed residual "
@@ -1290,9 +1518,11 @@ KNOWN_ISSUES = {
         "compiled solve can return NaN with status success and throw=True raising nothing (seen at 1e-291, "
         "'appell' and 'lagrange', lean loop and diffrax's: the NaN appears only in the XLA-optimised program — "
         "jax_debug_nans' de-optimised rerun is clean — and the non_finite_output check, evaluated in another "
-        "fusion, does not see it)."),
+        "fusion, does not see it)."
+    ),
     "large-other-velocity-hides-violation": (
         "the consistency check scales each constraint's residual by ‖A_k‖·‖qd0‖, the norm of ALL velocities: "
         "a large velocity of a coordinate the constraint does not involve hides a violation of the ones it "
-        "does, and the dependent velocity is silently replaced."),
+        "does, and the dependent velocity is silently replaced."
+    ),
 }

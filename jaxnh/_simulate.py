@@ -287,11 +287,11 @@ def simulate(
     if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
     eps = float(np.finfo(q0.dtype).eps)
-    for name, tol in (("rtol", rtol), ("atol", atol)):
-        number = isinstance(tol, (int, float, np.number, np.ndarray, jax.Array)) and not isinstance(tol, bool)
-        if not number or np.ndim(tol) != 0 or not (0 <= float(tol) < np.inf):
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        number = isinstance(value, (int, float, np.number, np.ndarray, jax.Array)) and not isinstance(value, bool)
+        if not number or np.ndim(value) != 0 or not (0 <= float(value) < np.inf):
             raise ValueError(
-                f"{name}={tol!r}: the tolerances must be finite real numbers ≥ 0 (rtol relative, atol in the "
+                f"{name}={value!r}: the tolerances must be finite real numbers ≥ 0 (rtol relative, atol in the "
                 f"units of the state), e.g. rtol=1e-8, atol=1e-10"
             )
     if rtol < 10 * eps:
@@ -374,7 +374,7 @@ def _rtol_class(rtol: float) -> float:
 
 def _check_real_numbers(name, x):
     """Raise, naming the argument, for input that is not an array of real numbers (strings, complex)."""
-    if isinstance(x, jax.core.Tracer):
+    if is_traced(x):
         kind = x.dtype
     else:
         try:

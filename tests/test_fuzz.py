@@ -42,7 +42,9 @@ def settle(results, what):
     known = [(c, o) for c, o in results if o.bad and c.known]
     assert not unknown, f"{what}: " + "\n".join(
         f"[{c.cls}] {c.what or ''}: {o.kind}: {o.detail}\n    params={c.params} q0={c.q0} qd0={c.qd0} ts={c.ts} "
-        f"kw={c.kw}" for c, o in unknown[:5])
+        f"kw={c.kw}"
+        for c, o in unknown[:5]
+    )
     if known:
         issues = sorted({c.known for c, _ in known})
         pytest.xfail("; ".join(f"{k}: {R.KNOWN_ISSUES[k]}" for k in issues))
@@ -81,7 +83,9 @@ def test_the_reference_is_independent_and_exact():
     p = dict(R.SHAFTS_BASE, U=1.3, c1=0.04, c3=0.06)
     ts = np.linspace(0.0, 2.0, 9)
     w0, v0 = 1.5, -0.7
-    q, qd = R.ref_motion(R.ShaftsModel, p, np.zeros(3), np.array([w0, 1.3 * w0, v0]), ts)
+    motion = R.ref_motion(R.ShaftsModel, p, np.zeros(3), np.array([w0, 1.3 * w0, v0]), ts)
+    assert motion is not None, "the reference integration failed"
+    q, qd = motion
     I = p["J1"] + p["J2"] * 1.3**2
     lam, w_inf = p["c1"] / I, (p["M1"] + 1.3 * p["M2"]) / p["c1"]
     lam3, v_inf = p["c3"] / p["J3"], p["M3"] / p["c3"]
@@ -159,8 +163,13 @@ def test_structural_and_option_errors():
 def test_structural_cases_with_programs_of_their_own():
     """Accepted dtypes and options that compile a program of their own: an integer parameter, float32,
     complex q0, atol=inf, max_steps=3 (the report runs all such cases, eagerly and under jit)."""
-    chosen = ("integer-valued parameter (valid)", "float32 q0, qd0, ts with rtol=1e-5 (valid)", "complex q0",
-              "atol=inf (error control off)", "max_steps=3 (valid: too few steps)")
+    chosen = (
+        "integer-valued parameter (valid)",
+        "float32 q0, qd0, ts with rtol=1e-5 (valid)",
+        "complex q0",
+        "atol=inf (error control off)",
+        "max_steps=3 (valid: too few steps)",
+    )
     results = [(case, R.run_eager(case)) for _, label, case in R.structural_table() if label in chosen]
     assert len(results) == len(chosen)
     assert [o.kind for c, o in results if c.what.startswith("float32")] == [R.RIGHT]
@@ -172,8 +181,9 @@ def test_locked_and_redundant_constraints():
     a clear error (no degree of freedom left)."""
     results = []
     for case in draw_all(R.locked_cases(), 6):
-        lag = R.dataclasses.replace(case, kw=dict(method="lagrange"),
-                                    known="near-redundant-accepted" if "nearly" in case.cls else "")
+        lag = R.dataclasses.replace(
+            case, kw=dict(method="lagrange"), known="near-redundant-accepted" if "nearly" in case.cls else ""
+        )
         results += [(lag, R.run_eager(lag)), (case, R.run_eager(case))]
         assert results[-1][1].kind == R.CLEAR_ERROR
     settle(results, "locked")
@@ -201,8 +211,8 @@ def test_linearize_options():
     results = []
     for label, kw, names in R.LINEARIZE_OPTIONS:
         kw = dict(kw)
-        over = kw.pop("_params", {})
-        c = R.dataclasses.replace(case, names=names, what=label, params={**case.params, **over})
+        over: dict = kw.pop("_params", {})  # pyright: ignore[reportAssignmentType]  (a params dict by construction)
+        c = R.dataclasses.replace(case, names=names, what=label, params={**(case.params or {}), **over})
         results.append((c, R.run_linearize_eager(c, **kw)))
     assert all(o.kind == R.CLEAR_ERROR for _, o in results), results
     settle(results, "linearize options")

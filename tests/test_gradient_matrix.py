@@ -78,8 +78,11 @@ def test_steep_steps(matrix):
     # the plain solve (simulate eagerly, no derivative) of the same cases: right, or stepped over too
     eager = list(zip([c for c, _ in steep], R.run_gradient_matrix_eager([c for c, _ in steep])))
     assert all(o.kind in (R.RIGHT, R.FAILURE, R.SILENT_WRONG) for _, o in eager)
-    wrong += [(c, R.dataclasses.replace(o, detail="values, eagerly: " + o.detail)) for c, o in eager
-              if o.kind == R.SILENT_WRONG]
+    wrong += [
+        (c, R.dataclasses.replace(o, detail="values, eagerly: " + o.detail))
+        for c, o in eager
+        if o.kind == R.SILENT_WRONG
+    ]
     if wrong:
         pytest.xfail("steep-step-skipped: " + R.KNOWN_ISSUES["steep-step-skipped"] + "\n" + _report(wrong))
 
