@@ -171,6 +171,7 @@ class PiecewiseLinear(Profile):
         return _linear(self.knots, self.values, t)
 
 
+@jax.jit
 def _linear(knots, values, t):
     """The piecewise-linear interpolant through (knots, values) at t, constant beyond the ends."""
     i = _interval(knots, t)
@@ -179,6 +180,7 @@ def _linear(knots, values, t):
     return values[i] + s * (values[i + 1] - values[i])
 
 
+@jax.jit
 def _natural_moments(knots, values):
     """Second derivatives m at the knots of the natural cubic spline (m[0] = m[-1] = 0).
 
@@ -187,6 +189,10 @@ def _natural_moments(knots, values):
     `d[i] = (values[i+1] − values[i]) / h[i]`, solved by the Thomas algorithm
     written out for the static number of knots (a few dozen operations that
     XLA fuses into the caller; linear in the values, so autodiff is exact).
+    Jitted so that its trace is made once per shape and reused wherever the
+    spline is called (every stage of every traced solve, and their
+    derivatives), instead of re-tracing its unrolled loop each time; XLA
+    inlines it, so the compiled program is the same.
     """
     n = knots.shape[0]
     zero = jnp.zeros_like(values[0])
@@ -212,6 +218,7 @@ def _natural_moments(knots, values):
     return jnp.stack(m)
 
 
+@jax.jit
 def _cubic(knots, values, moments, t):
     """Evaluate the cubic spline with given second derivatives at the knots;
     extended by straight lines (the end slopes) beyond the first and last knot."""

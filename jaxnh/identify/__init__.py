@@ -2,7 +2,7 @@
 
 * `fit(mech, params, record, free=..., positive=...)` — least squares of the
   simulated against the measured coordinates, with the Jacobian from forward
-  differentiation through the ODE solver; Levenberg–Marquardt (optimistix)
+  differentiation through the ODE solver; Levenberg–Marquardt
   or an optax optimiser; optional multiple shooting. Returns a `FitResult`:
   estimates with standard errors (Gauss–Newton covariance scaled by the
   residual variance), bands of derived quantities (`result.band`,

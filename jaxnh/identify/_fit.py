@@ -19,7 +19,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .._mechanism import Mechanism
 from .._sensitivity import FORWARD_MAX_PARAMETERS
@@ -30,9 +29,10 @@ from .parameters import Parametrisation, resolve
 from .problem import (
     _Progress,
     FAILED_RESIDUAL,
+    lm_message,
     Observations,
     Problem,
-    solve_least_squares,
+    solve_least_squares_host,
     statistics,
     value_and_jacobian,
 )
@@ -510,7 +510,7 @@ def fit(
             rtol and atol are tightened in proportion (at most to
             `AUTO_RTOL_MIN`) and the fit is continued from where it stopped
             (`ode_error_in_std`). A number fixes rtol.
-        optimizer: "levenberg-marquardt" (optimistix, default) or an optax
+        optimizer: "levenberg-marquardt" (jaxnh's own, default) or an optax
             `GradientTransformation` (e.g. `optax.adam(1e-2)`), which works on
             θ (log-parameters for positive ones).
         tol: relative and absolute tolerance of the optimiser's termination.
@@ -577,7 +577,7 @@ def fit(
         problem, theta0, obs, names = prepare(mech, params, data, shooting=shooting, **kw)
         if progress:
             print(f"multiple shooting: {shooting} segments, {problem.size} unknowns")
-        out = solve_least_squares(
+        out = solve_least_squares_host(
             problem,
             theta0,
             obs,
@@ -599,7 +599,7 @@ def fit(
             f"({', '.join(problem.labels(names)[:6])}{', …' if problem.size > 6 else ''})"
         )
     if lm:
-        out = solve_least_squares(
+        out = solve_least_squares_host(
             problem,
             theta0,
             obs,
@@ -609,17 +609,7 @@ def fit(
         )
         theta, r, J = out["theta"], out["r"], out["J"]
         iterations += int(out["steps"])
-        code = int(out["result"])
-        stopped = code == 0
-        why = (
-            "stopped on its tolerances"
-            if stopped
-            else (
-                f"iteration limit ({max_iterations}) reached"
-                if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
-                else f"optimistix stopped: {_optx_message(code)}"
-            )
-        )
+        stopped, why = int(out["result"]) == 0, lm_message(int(out["result"]), max_iterations)
         opt_name = "levenberg-marquardt"
     else:
         theta, r, J, its, stopped = _optax_loop(problem, optimizer, theta0, obs, tol, max_iterations, progress)
@@ -645,7 +635,7 @@ def fit(
                 f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}"
             )
         if lm:
-            out = solve_least_squares(
+            out = solve_least_squares_host(
                 problem,
                 jnp.asarray(theta),
                 obs,
@@ -655,17 +645,7 @@ def fit(
             )
             theta, r, J = out["theta"], out["r"], out["J"]
             iterations += int(out["steps"])
-            code = int(out["result"])
-            stopped = code == 0
-            why = (
-                "stopped on its tolerances"
-                if stopped
-                else (
-                    f"iteration limit ({max_iterations}) reached"
-                    if code == int(optx.RESULTS.nonlinear_max_steps_reached._value)
-                    else f"optimistix stopped: {_optx_message(code)}"
-                )
-            )
+            stopped, why = int(out["result"]) == 0, lm_message(int(out["result"]), max_iterations)
         else:
             theta, r, J, its, stopped = _optax_loop(
                 problem, optimizer, jnp.asarray(theta), obs, tol, max_iterations, progress
@@ -724,18 +704,11 @@ def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
     return float(np.linalg.norm(U.T @ e))
 
 
-def _optx_message(code: int) -> str:
-    for name in ("nonlinear_divergence", "nonfinite"):
-        if code == int(getattr(optx.RESULTS, name)._value):
-            return name.replace("_", " ")
-    return f"result code {code}"
-
-
 def _progress(problem, names, obs):
     labels = problem.par.labels
     show = tuple(i for i, lab in enumerate(labels) if "[" not in lab)[:3]
     log = problem.par.log_mask()
-    return _Progress(tuple(labels[i] for i in show), tuple(bool(log[i]) for i in show), int(obs.y.size))
+    return _Progress(tuple(labels[i] for i in show), show, tuple(bool(log[i]) for i in show), int(obs.y.size))
 
 
 @eqx.filter_jit

@@ -13,13 +13,14 @@ Residuals are `(q_sim − y) / sigma` for every observed channel and sample,
 plus, with multiple shooting, the continuity defects between segments.
 Their Jacobian comes from forward sensitivities integrated with the state
 (`jaxnh._sensitivity.ForwardSensitivity`: one solve of the state and one
-sensitivity column per unknown), wrapped in a `jax.custom_jvp` so that any
-consumer (optimistix's Levenberg–Marquardt, `jax.grad` for optax) gets it
-from one `jax.jacfwd` pass: with tens of unknowns and thousands of residuals
-this costs about 1.3–2 plain solves (benchmarks/FIT_COST.md), far less than
-reverse mode (one adjoint pass per residual), `jax.jacfwd` through
-`diffrax.ForwardMode` (≈ 6× slower here) or optimistix's default
-re-linearisation.
+sensitivity column per unknown), in one `jax.jacfwd` pass: with tens of
+unknowns and thousands of residuals this costs about 1.3–2 plain solves
+(benchmarks/FIT_COST.md), far less than reverse mode (one adjoint pass per
+residual) or `jax.jacfwd` through `diffrax.ForwardMode` (≈ 6× slower here).
+`solve_least_squares` evaluates (r, J) explicitly once per iteration, so its
+compiled loop holds one copy of that pass; `Problem.residuals` wraps it in a
+`jax.custom_jvp` for consumers that differentiate the residuals themselves
+(`jax.grad` for optax).
 """
 
 from __future__ import annotations
@@ -32,7 +33,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
@@ -44,15 +44,15 @@ from .parameters import Parametrisation
 __all__ = [
     "Observations",
     "Problem",
-    "LevenbergMarquardt",
+    "LM_RESULTS",
+    "lm_message",
     "solve_least_squares",
-    "column_scale",
+    "solve_least_squares_host",
     "value_and_jacobian",
     "statistics",
 ]
 
-LM_TAU = 1e-3  # initial Levenberg–Marquardt damping relative to diag(JᵀJ)
-TRUST_HIGH_CUTOFF = 0.75  # actual/predicted decrease above which the trust region grows
+LM_TAU = 1e-3  # initial Levenberg–Marquardt damping relative to the scaled diag(JᵀJ) (Nielsen's τ)
 FAILED_RESIDUAL = 1e6  # residual given to samples after a failed solve (in noise standard deviations)
 
 
@@ -285,48 +285,43 @@ def value_and_jacobian(problem: Problem, theta, data: Observations):
     return _jacfwd(problem, theta, data)
 
 
-def column_scale(J):
-    """Scaling of the unknowns for Levenberg–Marquardt: √τ · (column norms of J)."""
-    c = jnp.linalg.norm(J, axis=0)
-    return jnp.sqrt(LM_TAU) * jnp.where(c > 0, c, 1.0)
-
-
 class _Progress(eqx.Module):
-    """Prints one line per Levenberg–Marquardt iteration (via a host callback).
-
-    The solver works in scaled coordinates z = (θ − θ0) · scale; the line
-    shows the first few free parameters in natural units.
-    """
+    """Prints one line per Levenberg–Marquardt iteration (via a host callback):
+    the iteration, the loss at the point tried, the best loss so far, the
+    damping and a few free parameters in natural units."""
 
     labels: tuple = eqx.field(static=True)
+    index: tuple = eqx.field(static=True)  # entries of θ shown, with `labels`
     log: tuple = eqx.field(static=True)
     n_residuals: int = eqx.field(static=True)
-    theta0: Optional[jax.Array] = None
-    scale: Optional[jax.Array] = None
 
-    def __call__(self, **kw):
-        shown = len(self.labels)
-        theta = self.theta0 + kw["y"][1] / self.scale
+    def show(self, k, loss, best, damping, theta):
+        """Print the line now (host loop)."""
+        _print_progress(
+            k, loss, best, damping, np.asarray(theta)[list(self.index)], self.labels, self.log, self.n_residuals
+        )
+
+    def __call__(self, k, loss, best, damping, theta):
         jax.debug.callback(
             _print_progress,
-            kw["num_steps"][1],
-            kw["loss_this_step"][1],
-            kw["loss_last_accepted_step"][1],
-            kw["step_size"][1],
-            theta[:shown],
+            k,
+            loss,
+            best,
+            damping,
+            theta[jnp.asarray(self.index, dtype=int)],
             self.labels,
             self.log,
             self.n_residuals,
         )
 
 
-def _print_progress(k, loss, best, step, y, labels, log, n):
+def _print_progress(k, loss, best, damping, y, labels, log, n):
     vals = "  ".join(f"{lab}={(np.exp(v) if lg else v):.6g}" for lab, v, lg in zip(labels, np.asarray(y), log))
     rms = np.sqrt(2 * float(loss) / n)
     best = f"{float(best):12.6e}" if int(k) > 0 else f"{'-':>12}"
     print(
-        f"  iter {int(k):3d}  loss {float(loss):12.6e}  rms {rms:9.4g}  "
-        f"best {best}  trust radius {float(step):8.2e}  {vals}",
+        f"  iter {int(k):3d}  loss {float(loss):12.6e}  rms {rms:9.4g}  best {best}  "
+        f"damping {float(damping):8.2e}  {vals}",
         flush=True,
     )
 
@@ -340,54 +335,123 @@ tolerance below the floor left the optimiser shrinking its trust region for
 30–40 extra iterations with no change in the estimates beyond 0.01 standard
 errors (measured over 5 noise realisations)."""
 
+LM_ACCEPT = 1e-4
+"""A trial step is taken when the actual decrease of the loss is at least this
+fraction of the decrease the linear model predicted (Moré 1978)."""
 
-class LevenbergMarquardt(optx.LevenbergMarquardt):
-    """optimistix's Levenberg–Marquardt, working in scaled coordinates
-    z = (θ − θ0) · scale, that also stops when the remaining Gauss–Newton
-    step is negligible.
+LM_MAX_DAMPING = 1e16
+"""Damping (relative to the scaled Gauss–Newton matrix, whose diagonal is ≤ 1)
+beyond which the step is below rounding: no step lowers the loss, so the solve
+stops as stalled."""
 
-    Near the optimum the loss changes by less than its rounding, so
-    trust-region steps are rejected at random and the Cauchy test (small step
-    *and* small change) can take many iterations to pass, shrinking the trust
-    region to nothing. Two scale-free tests end that: with `P r` the part of
-    the residuals the Jacobian can explain and `s² = |r|² / (N − p)`, the full
-    Gauss–Newton step has length `|P r| / s` in standard errors (stop below
-    `gn_tol`); and for data fitted to rounding level (noise-free records, where
-    s is itself rounding) the step changes no unknown by more than
-    `step_rtol · (1 + |θ|)`.
-    """
-
-    gn_tol: float
-    step_rtol: float
-    theta0: jax.Array
-    scale: jax.Array
-
-    def __init__(self, rtol, atol, theta0, scale, gn_tol=GN_STOP_TOL, step_rtol=1e-10, verbose=False):
-        super().__init__(rtol, atol, verbose=verbose)
-        self.gn_tol, self.step_rtol = gn_tol, step_rtol
-        self.theta0, self.scale = theta0, scale
-        # widen the trust region once the model predicts the decrease fairly well
-        # (optimistix's default waits for 99 % agreement, which on this problem
-        # leaves it creeping along at constant damping for many iterations)
-        self.search = optx.ClassicalTrustRegion(high_cutoff=TRUST_HIGH_CUTOFF)
-
-    def terminate(self, fn, y, args, options, state, tags):
-        done, result = super().terminate(fn, y, args, options, state, tags)
-        r = state.f_info.residual
-        J = state.f_info.jac.as_matrix()
-        U, sv, Vt = jnp.linalg.svd(J, full_matrices=False)
-        keep = sv > 1e-12 * sv[0]
-        Pr = jnp.where(keep, U.T @ r, 0.0)
-        s = jnp.sqrt(jnp.dot(r, r) / max(J.shape[0] - J.shape[1], 1))
-        small_in_std = jnp.linalg.norm(Pr) <= self.gn_tol * s
-        dtheta = (Vt.T @ (Pr / jnp.where(keep, sv, 1.0))) / self.scale
-        theta = self.theta0 + y / self.scale
-        small_change = jnp.max(jnp.abs(dtheta) / (1 + jnp.abs(theta))) <= self.step_rtol
-        started = (~state.first_step) & (state.num_accepted_steps > 0)
-        return done | (started & (small_in_std | small_change)), result
+LM_RESULTS = {
+    0: "stopped on its tolerances",
+    1: "iteration limit reached",
+    2: "stalled: no step lowers the loss (the damping grew past 1e16)",
+    3: "the simulation failed at the starting point (non-finite residuals or Jacobian)",
+}
+"""The `result` codes of `solve_least_squares`, in words."""
 
 
-@eqx.filter_jit
+class _LMState(eqx.Module):
+    k: jax.Array  # residual-and-Jacobian evaluations so far
+    theta: jax.Array  # accepted point
+    r: jax.Array
+    J: jax.Array
+    loss: jax.Array
+    D: jax.Array  # scaling of the unknowns: running maximum of J's column norms (Moré 1978)
+    mu: jax.Array  # damping, relative to the scaled Gauss–Newton matrix
+    nu: jax.Array  # growth factor of the damping after a rejected step (Nielsen 1999)
+    trial: jax.Array  # the point evaluated next
+    pred: jax.Array  # the decrease of the loss the linear model predicts at `trial`
+    done: jax.Array
+    code: jax.Array
+
+
+def _lm_update(state: _LMState, r_c, J_c, limits) -> _LMState:
+    """One Levenberg–Marquardt iteration, given the residuals and Jacobian at `state.trial`."""
+    tol, gn_tol, step_rtol, max_steps = limits
+    loss_c = 0.5 * jnp.dot(r_c, r_c)
+    ok_c = jnp.all(jnp.isfinite(J_c)) & jnp.all(r_c != FAILED_RESIDUAL) & jnp.isfinite(loss_c)
+    first = state.k == 0
+    rho = (state.loss - loss_c) / jnp.where(state.pred > 0, state.pred, jnp.inf)
+    take = first | (ok_c & (rho > LM_ACCEPT))
+    failed_start = first & ~ok_c
+    theta = jnp.where(take, state.trial, state.theta)
+    r = jnp.where(take, r_c, state.r)
+    J = jnp.where(take, J_c, state.J)
+    loss = jnp.where(take, loss_c, state.loss)
+    colnorm = jnp.linalg.norm(J, axis=0)
+    D = jnp.where(first, jnp.where(colnorm > 0, colnorm, 1.0), jnp.maximum(state.D, colnorm))
+    mu = jnp.where(
+        first,
+        LM_TAU,
+        jnp.where(take, state.mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), state.mu * state.nu),
+    )
+    nu = jnp.where(take, 2.0, 2.0 * state.nu)
+    # the linear model at the accepted point, in scaled unknowns
+    U, sv, Vt = jnp.linalg.svd(J / D, full_matrices=False)
+    ur = U.T @ r
+    keep = sv > 1e-12 * sv[0]
+    n, p = J.shape
+    s2 = jnp.dot(r, r) / max(n - p, 1)
+    pr = jnp.where(keep, ur, 0.0)
+    gn = -(Vt.T @ (pr / jnp.where(keep, sv, 1.0))) / D
+    small_in_std = jnp.linalg.norm(pr) <= gn_tol * jnp.sqrt(s2)
+    small_change = jnp.max(jnp.abs(gn) / (1.0 + jnp.abs(theta))) <= step_rtol
+    cauchy = (
+        take
+        & ~first
+        & (jnp.abs(state.loss - loss_c) <= tol * loss_c)
+        & (jnp.max(jnp.abs(state.trial - state.theta) / (1.0 + jnp.abs(theta))) <= tol)
+    )
+    converged = take & ok_c & (small_in_std | small_change | cauchy)
+    stalled = mu > LM_MAX_DAMPING
+    k = state.k + 1
+    code = jnp.where(failed_start, 3, jnp.where(converged, 0, jnp.where(stalled, 2, jnp.where(k >= max_steps, 1, 0))))
+    done = failed_start | converged | stalled | (k >= max_steps)
+    # the next trial: δ̃ = −V diag(s / (s² + μ)) Uᵀr, δ = δ̃ / D
+    filt = sv / (sv**2 + mu)
+    delta = -(Vt.T @ (filt * ur)) / D
+    pred = 0.5 * jnp.sum(ur**2 * (1.0 - (mu / (sv**2 + mu)) ** 2))
+    new = _LMState(k, theta, r, J, loss, D, mu, nu, theta + delta, pred, done, code.astype(jnp.int32))
+    # under vmap the loop runs until every member is done: finished members keep their state
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(state.done, a, b), state, new)
+
+
+def _lm_start(theta0, n_residuals: int) -> _LMState:
+    dtype = theta0.dtype
+    p, N = theta0.shape[0], n_residuals
+    return _LMState(
+        k=jnp.asarray(0),
+        theta=theta0,
+        r=jnp.zeros(N, dtype),
+        J=jnp.zeros((N, p), dtype),
+        loss=jnp.asarray(jnp.inf, dtype),
+        D=jnp.ones(p, dtype),
+        mu=jnp.asarray(LM_TAU, dtype),
+        nu=jnp.asarray(2.0, dtype),
+        trial=theta0,
+        pred=jnp.asarray(0.0, dtype),
+        done=jnp.asarray(False),
+        code=jnp.asarray(0, jnp.int32),
+    )
+
+
+def _lm_limits(tol, gn_tol, step_rtol, max_steps, dtype):
+    # the tolerances and the limit as data: other values reuse the compiled programs
+    return (
+        jnp.asarray(tol, dtype),
+        jnp.asarray(gn_tol, dtype),
+        jnp.asarray(step_rtol, dtype),
+        jnp.asarray(max_steps),
+    )
+
+
+def _lm_out(state: _LMState) -> dict:
+    return {"theta": state.theta, "result": state.code, "steps": state.k, "r": state.r, "J": state.J}
+
+
 def solve_least_squares(
     problem: Problem,
     theta0,
@@ -396,46 +460,91 @@ def solve_least_squares(
     max_steps: int = 100,
     progress: Optional[_Progress] = None,
     gn_tol: float = GN_STOP_TOL,
-    scale=None,
+    step_rtol: float = 1e-10,
 ):
-    """Levenberg–Marquardt (optimistix) from θ0; pure JAX, so it vmaps over data.
+    """Levenberg–Marquardt from θ0; pure JAX, so it vmaps over data and θ0.
 
-    Stops on optimistix's Cauchy test with rtol = atol = `tol`, or when the
-    remaining Gauss–Newton step is below `gn_tol` standard errors or changes
-    no unknown by more than 1e-10 of its size.
+    Each iteration evaluates the residuals r and their Jacobian J at one trial
+    point, in one forward-sensitivity solve (`value_and_jacobian`; one trace
+    of it in the compiled loop). The step solves
+    `min ‖r + J δ‖² + μ ‖D δ‖²` through the SVD of `J D⁻¹`, with D the running
+    maximum of J's column norms (units of the unknowns do not matter) and the
+    damping μ updated by the ratio ρ of actual to predicted decrease
+    (Nielsen 1999: μ ← μ·max(1/3, 1 − (2ρ − 1)³) on success, μ ← μ·ν, ν ← 2ν
+    on failure; μ starts at `LM_TAU`). A step is taken when ρ > `LM_ACCEPT`;
+    a failed simulation at a trial point (residuals `FAILED_RESIDUAL` or a
+    non-finite Jacobian) counts as no decrease.
 
-    `scale` (size,): the scaling of the unknowns, `column_scale(J)` of the
-    Jacobian at θ0; computed here when not given (passing it, from a separately
-    compiled `value_and_jacobian`, keeps this function's compilation smaller).
+    Stops (result 0) when the remaining Gauss–Newton step is below `gn_tol`
+    standard errors (`s² = ‖r‖²/(N − p)`), or changes no unknown by more than
+    `step_rtol·(1 + |θ|)` (data fitted to rounding level), or a taken step
+    changed the loss by at most `tol`·loss and every unknown by at most
+    `tol`·(1 + |θ|). Else result 1 (`max_steps` evaluations), 2 (stalled) or
+    3 (failed at θ0); `LM_RESULTS` says them in words.
 
-    Returns a dict: `theta`, `result` (optimistix RESULTS as int; 0 = stopped
-    on a tolerance), `steps` (LM iterations), `r` and `J` at the solution.
+    `jaxnh.fit` runs the same iteration from Python around a compiled
+    `value_and_jacobian` (`solve_least_squares_host`), which compiles in about
+    half the time; this one is for batches (`jax.vmap`).
+
+    Returns a dict: `theta`, `result` (int, see above), `steps` (evaluations
+    of r and J, the first at θ0 included), `r` and `J` at `theta`.
     """
-    # Solve in z = (θ − θ0) · scale with scale = √τ · (column norms of J at θ0):
-    # then optimistix's damping λ·I, starting at λ = 1, acts like Marquardt's
-    # τ · diag(JᵀJ) (Nielsen's τ = 1e-3), whatever the units of the unknowns.
-    if scale is None:
-        _, J0 = _jacfwd(problem, theta0, data)
-        scale = column_scale(J0)
+    theta0 = jnp.asarray(theta0)
+    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype)
+    return _levenberg_marquardt(problem, theta0, data, limits, progress)
 
-    def fn(z, args):
-        return problem.residuals(theta0 + z / scale, args)
 
-    verbose = (
-        False
-        if progress is None
-        else eqx.tree_at(lambda p: (p.theta0, p.scale), progress, (theta0, scale), is_leaf=lambda x: x is None)
-    )
-    solver = LevenbergMarquardt(tol, tol, theta0, scale, gn_tol=gn_tol, verbose=verbose)
-    sol = optx.least_squares(fn, solver, jnp.zeros_like(theta0), args=data, max_steps=max_steps, throw=False)
-    info = sol.state.f_info
-    return {
-        "theta": theta0 + sol.value / scale,
-        "result": sol.result._value,
-        "steps": sol.stats["num_steps"],
-        "r": info.residual,
-        "J": info.jac.as_matrix() * scale,
-    }
+@eqx.filter_jit
+def _levenberg_marquardt(problem: Problem, theta0, data: Observations, limits, progress):
+    def step(state: _LMState) -> _LMState:
+        r_c, J_c = _jacfwd(problem, state.trial, data)
+        if progress is not None:
+            progress(state.k, 0.5 * jnp.dot(r_c, r_c), state.loss, state.mu, state.trial)
+        return _lm_update(state, r_c, J_c, limits)
+
+    N = jax.eval_shape(lambda: problem.raw_residuals(theta0, data)).shape[0]
+    out = jax.lax.while_loop(lambda st: ~st.done, step, _lm_start(theta0, N))
+    return _lm_out(out)
+
+
+_lm_update_jit = jax.jit(_lm_update)
+
+
+def solve_least_squares_host(
+    problem: Problem,
+    theta0,
+    data: Observations,
+    tol: float = 1e-8,
+    max_steps: int = 100,
+    progress: Optional[_Progress] = None,
+    gn_tol: float = GN_STOP_TOL,
+    step_rtol: float = 1e-10,
+):
+    """`solve_least_squares` for one record, iterated from Python.
+
+    The same iteration and the same results; the loop runs on the host, so the
+    only large compiled program is `value_and_jacobian` (shared with every
+    other caller) instead of a loop around it, which XLA took about twice as
+    long to compile (benchmarks/FIT_COST.md). Not for `jax.vmap`/`jax.jit`.
+    """
+    theta0 = jnp.asarray(theta0)
+    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype)
+    r_c, J_c = value_and_jacobian(problem, theta0, data)
+    state = _lm_start(theta0, r_c.shape[0])
+    while True:
+        if progress is not None:
+            progress.show(int(state.k), 0.5 * float(jnp.dot(r_c, r_c)), float(state.loss), float(state.mu), state.trial)
+        state = _lm_update_jit(state, r_c, J_c, limits)
+        if bool(state.done):
+            return _lm_out(state)
+        r_c, J_c = value_and_jacobian(problem, state.trial, data)
+
+
+def lm_message(code: int, max_steps: int) -> str:
+    """`solve_least_squares`'s result code in words."""
+    if code == 1:
+        return f"iteration limit ({max_steps}) reached"
+    return LM_RESULTS.get(int(code), f"unknown result code {code}")
 
 
 def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
