@@ -24,7 +24,7 @@ from ._checks import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOV
 from ._mechanism import Mechanism
 from ._sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity, lean_compatible, LeanIntegrator
 from ._solution import DenseMotion, Solution
-from ._status import error_for, is_traced, raise_in_graph, STATUS
+from ._status import error_for, is_traced, raise_in_graph, STATUS, under_jit
 from .equations import Appell, as_formulation, Lagrange
 from .equations.base import as_data, as_float
 from .solvers import Tsit5
@@ -335,7 +335,9 @@ def simulate(
         bool(throw and traced),
     )
     fast = _fast_static(static, default_controller, params)
-    if fast is not None:  # the common case: one jax.jit call, no filtering of arguments per call
+    if traced and under_jit():  # inside the caller's compiled program: no nested jit (see `under_jit`)
+        sol = _call_run(static, params, q0, qd0, ts, stepsize_controller, dt0, jitted=False)
+    elif fast is not None:  # the common case: one jax.jit call, no filtering of arguments per call
         assert isinstance(stepsize_controller, diffrax.PIDController)
         tolerances = (stepsize_controller.rtol, stepsize_controller.atol)
         sol = _run_fast(
@@ -355,9 +357,9 @@ def simulate(
     return sol
 
 
-def _call_run(static, params, q0, qd0, ts, controller, dt0):
+def _call_run(static, params, q0, qd0, ts, controller, dt0, jitted: bool = True):
     mech, form, solver, saveat, event, progress_meter, adjoint, record, max_steps, rtol, graph_throw = static
-    return _run(
+    return (_run if jitted else _run_traced)(
         mech,
         form,
         params,
@@ -521,8 +523,7 @@ class _UserEvent(eqx.Module):
         return self.cond_fn(t, (q, qd), params, **kwargs)
 
 
-@eqx.filter_jit
-def _run(
+def _run_traced(
     mech,
     form,
     params,
@@ -686,6 +687,10 @@ def _run(
         dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )
+
+
+_run = eqx.filter_jit(_run_traced)
+"""`_run_traced` as its own compiled program (calls from outside any jit)."""
 
 
 def y0_dtype(y0):

@@ -136,6 +136,20 @@ def is_traced(*trees) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
+def under_jit() -> bool:
+    """Whether a staging trace (`jax.jit`, `lax.while_loop`, `jax.eval_shape`, ...) is active.
+
+    Then a nested `jax.jit` adds nothing (XLA inlines it into the outer program)
+    but costs tracing: JAX re-traces the inner jaxpr for every transformation
+    applied on top of it (a `jax.jacfwd` inside the outer jit). False when JAX
+    cannot tell (a version without `unsafe_am_i_under_a_jit`).
+    """
+    from jax._src import core
+
+    probe = getattr(core, "unsafe_am_i_under_a_jit", None)
+    return bool(probe()) if probe is not None else False
+
+
 def raise_in_graph(x, status):
     """`x`, with an error raised from inside the program when `status` is a failure."""
     failed = status != STATUS.successful

@@ -547,6 +547,7 @@ def lm_message(code: int, max_steps: int) -> str:
     return LM_RESULTS.get(int(code), f"unknown result code {code}")
 
 
+@jax.jit
 def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
     """Gauss–Newton covariance of θ from the weighted Jacobian J (N, p) and residuals r (N,).
 

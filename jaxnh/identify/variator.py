@@ -49,8 +49,17 @@ def ratio_knots(record: Record, n_knots: int = DEFAULT_KNOTS) -> np.ndarray:
 
 def _spline_basis(knots, t):
     """Matrix (len(t), len(knots)) of the natural spline's values: it is linear in the knot values."""
-    E = jnp.eye(len(knots))
-    return np.asarray(jax.vmap(lambda e: jax.vmap(CubicSpline(knots, e))(jnp.asarray(t)))(E)).T
+    return np.asarray(_basis(jnp.asarray(knots, dtype=float), jnp.asarray(t, dtype=float)))
+
+
+@jax.jit
+def _basis(knots, t):
+    return jax.vmap(lambda e: jax.vmap(CubicSpline(knots, e))(t))(jnp.eye(knots.shape[0], dtype=t.dtype)).T
+
+
+@jax.jit
+def _ratio_and_rate(U21, t):
+    return jax.vmap(U21)(t), jax.vmap(U21.derivative)(t)
 
 
 def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
@@ -89,8 +98,7 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     else:
         u = np.ones(len(knots))
     U21 = CubicSpline(knots, u)
-    U = np.asarray(jax.vmap(U21)(jnp.asarray(t)))
-    dU = np.asarray(jax.vmap(U21.derivative)(jnp.asarray(t)))
+    U, dU = (np.asarray(x) for x in _ratio_and_rate(U21, jnp.asarray(t, dtype=float)))
     if "phi1" in d:
         w, a = d["phi1"]
     else:
