@@ -39,7 +39,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.optimize
 
 from .._holonomic import HolonomicMechanism
 from .._linearize import Linearization, linearize
@@ -424,6 +423,8 @@ def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matri
 
     lo, hi = bracket
     # (SciPy has no type information: its return is inferred as that of full_output=False or True)
+    import scipy.optimize  # imported here: it costs 0.5 s at `import jaxnh` otherwise
+
     return scipy.optimize.brentq(hurwitz, lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps)  # pyright: ignore[reportReturnType]
 
 
@@ -432,6 +433,8 @@ def capsize_speed(params=None, bracket=(5.0, 10.0), method: str = "lagrange", ma
     crosses zero, where `a0 = det(g K0 + v² K2)` vanishes (root in `bracket`)."""
     mats, g = _matrices(params, method, matrices)
     lo, hi = bracket
+    import scipy.optimize
+
     return scipy.optimize.brentq(  # pyright: ignore[reportReturnType]  (as in weave_speed)
         lambda v: characteristic_polynomial(mats, v, g)[4], lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps
     )
