@@ -11,8 +11,10 @@ reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
   holonomic constraint written as a nonholonomic one);
 * constraints declared linear in the velocities are (∂²c/∂qd² = 0);
 * qd0 satisfies each constraint k to √eps relative to its velocity scale
-  `‖A_k‖·‖qd0‖ + |c_k(q0, 0, t0)|` (an absolute test would pass a 50 %
-  violation of tiny velocities);
+  `‖A_k‖·‖qd0 over the coordinates it involves‖ + |c_k(q0, 0, t0)|`
+  (`constraint_scale`; an absolute test would pass a 50 % violation of tiny
+  velocities, and the norm of all of qd0 would let a large velocity
+  elsewhere hide a violation);
 * the formulation's own checks (Appell's: a regular dependent-velocity block).
 """
 
@@ -27,7 +29,7 @@ from ._status import STATUS
 from .linalg import cholesky
 
 
-__all__ = ["initial_checks", "mass_matrix_ok", "diagnose_stall"]
+__all__ = ["initial_checks", "mass_matrix_ok", "diagnose_stall", "constraint_scale", "scaled_norm"]
 
 STALLED_SPLIT_BELOW = 1e-4
 """A failed solve whose last state has a dependent block this much worse conditioned than
@@ -40,7 +42,10 @@ def mass_matrix_ok(mech, q, qd, t, params):
     tiny = jnp.finfo(q.dtype).tiny
     M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
     d = jnp.diag(M)
-    Ms = 0.5 * (M + M.T) / jnp.sqrt(jnp.outer(jnp.abs(d), jnp.abs(d)) + tiny)
+    # D^-½ M D^-½ one factor at a time: the product of two inertias near 1e±300 over/underflows
+    r = jnp.sqrt(jnp.abs(d))
+    r = jnp.where(r > 0, r, jnp.sqrt(tiny))
+    Ms = (0.5 * (M + M.T) / r[:, None]) / r[None, :]
     Ms = jnp.where(jnp.isfinite(Ms), Ms, 0.0)
     # Cholesky pivots of the unit-diagonal matrix: all > 1e3 eps (each pivot bounds the
     # smallest eigenvalue from above, and a pivot ≤ 0 means not positive definite)
@@ -67,9 +72,7 @@ def initial_checks(form, q, qd, t, params):
         A = jax.jacfwd(c)(qd)
         a = c(jnp.zeros_like(qd))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
-        # per constraint: |A_k|·|qd| + |a_k| (Cauchy–Schwarz bound of its terms; not |A_k|·|qd| entrywise,
-        # whose terms can all vanish at a state where the constraint is still met only to rounding)
-        scale = jnp.linalg.norm(A, axis=1) * jnp.linalg.norm(qd) + jnp.abs(a)
+        scale = constraint_scale(A, qd, a)
         consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= jnp.sqrt(eps) * scale + tiny)
         if mech.nonlinear_constraints:
             linear_ok = jnp.asarray(True)
@@ -91,6 +94,29 @@ def initial_checks(form, q, qd, t, params):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
     return ok, status
+
+
+def scaled_norm(x, axis=None):
+    """Euclidean norm that neither underflows nor overflows: max|x| · ‖x / max|x|‖
+    (the squares of velocities below ≈ 1e-154 underflow to 0 in a plain norm)."""
+    m = jnp.max(jnp.abs(x), axis=axis, keepdims=True)
+    safe = jnp.where(m > 0, m, 1.0)
+    return jnp.squeeze(m, axis=axis) * jnp.linalg.norm(x / safe, axis=axis)
+
+
+def constraint_scale(A, qd, a):
+    """The velocity scale of each constraint `c_k = A_k qd + a_k` (m,), against which
+    its residual is judged: `‖A_k‖ · ‖qd over the coordinates row k involves‖ + |a_k|`.
+
+    A Cauchy–Schwarz bound of the row's own terms: velocities of coordinates the
+    constraint does not involve do not enter (a large one would otherwise hide a
+    violation), and it does not vanish where the terms cancel (|A_k ⊙ qd| entrywise
+    can all be 0 while the constraint is met only to rounding). Norms scaled, so
+    tiny or huge velocities neither underflow nor overflow.
+    """
+    involved = A != 0
+    qd_k = jnp.where(involved, qd[None, :], 0.0)
+    return scaled_norm(A, axis=1) * scaled_norm(qd_k, axis=1) + jnp.abs(a)
 
 
 def _mass_diagonal(mech, q, qd, t, params):

@@ -37,8 +37,8 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     inconsistent_velocities = (
         "qd0 violates the nonholonomic constraints by more than √eps relative to the velocity "
-        "scale ‖A_k‖·‖qd0‖ + |c_k(q0, 0, t0)| of each constraint k. Use jaxnh.consistent_velocities(mech, q0, qd0, t0, "
-        "params) to project qd0 onto the constraints."
+        "scale ‖A_k‖·‖the velocities constraint k involves‖ + |c_k(q0, 0, t0)| of each constraint k. "
+        "Use jaxnh.consistent_velocities(mech, q0, qd0, t0, params) to project qd0 onto the constraints."
     )
     velocity_free_constraint = (
         "A constraint does not depend on the velocities at the initial state (a row of "
