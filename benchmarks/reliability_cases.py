@@ -773,7 +773,6 @@ def structural_table():
         "complex parameter",
         r"params|J1",
         params={**p, "J1": 0.02 + 0.01j},
-        known="complex-parameter-unclear",
     )
     add("wrong dtype", "string q0", Q, q0="0 0 0")
     add("wrong dtype", "string parameter", r"params|J1|kinetic", params={**p, "J1": "0.02"})
@@ -1229,7 +1228,7 @@ def fit_argument_cases():
         ("shooting=True", dict(shooting=True), r"shooting"),
         ("shooting=400 (segments too short)", dict(shooting=400), r"shooting"),
         ("rtol='fast'", dict(rtol="fast"), r"rtol"),
-        ("rtol=-1", dict(rtol=-1.0, _optimises=True), r"rtol"),
+        ("rtol=-1", dict(rtol=-1.0), r"rtol"),
         ("differentiation='backward'", dict(differentiation="backward"), r"differentiation"),
         (
             "differentiation='reverse' with Levenberg–Marquardt",
@@ -1241,15 +1240,11 @@ def fit_argument_cases():
         ("data is an array", dict(data=np.zeros((41, 4))), r"data|Record"),
         ("mech is a function", dict(mech=shafts_kinetic), r"mech|Mechanism"),
         ("qd0 with NaN", dict(qd0=np.array([math.nan, 1.0, 0.5])), r"qd0|finite|NaN"),
-        ("start parameter NaN", dict(params=nan_p, positive=(), _optimises=True), r"J2|params|finite|NaN"),
+        ("start parameter NaN", dict(params=nan_p, positive=()), r"J2|params|finite|NaN"),
     )
 
 
-FIT_KNOWN = {
-    "qd0 with NaN": "fit-nan-qd0-unclear",
-    "start parameter NaN": "fit-nan-start-not-refused",
-    "rtol=-1": "fit-bad-rtol-not-refused",
-}
+FIT_KNOWN: dict[str, str] = {}
 
 
 def run_fit(label, overrides, names, record, qd0) -> Outcome:
@@ -1477,22 +1472,6 @@ def _reverse_final(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
 # --- known library issues (found by these generators; reported, not hidden) -------------------
 
 KNOWN_ISSUES = {
-    "complex-parameter-unclear": (
-        "a complex parameter fails inside jax.hessian with JAX's 'jacrev requires real-valued outputs', "
-        "which names neither the parameter nor `kinetic`."
-    ),
-    "fit-nan-qd0-unclear": (
-        "fit(qd0=[nan, ...]) raises 'the 1 constraints are linearly dependent at this state', a wrong "
-        "diagnosis that does not name qd0 or the NaN."
-    ),
-    "fit-nan-start-not-refused": (
-        "fit with a NaN starting value of a free parameter is not refused: the optimiser 'stops on its "
-        "tolerances' at once and the result says the simulation failed (converged=False)."
-    ),
-    "fit-bad-rtol-not-refused": (
-        "fit(rtol=-1) is not refused: the Levenberg–Marquardt solve runs (and compiles, ≈ 20 s) and ends "
-        "with converged=False and 'optimistix stopped: result code 2' (simulate itself refuses rtol=-1)."
-    ),
     "linearize-traced-nonlinear": (
         "linearize under jit/vmap (traced inputs) skips the check of undeclared nonlinear constraints and "
         "returns a finite, wrong state matrix."

@@ -271,6 +271,8 @@ def simulate(
     qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
     params = as_data(params, q0)  # one program per structure of params, not per value
+    if any(_is_complex(x) for x in jax.tree_util.tree_leaves(params)):
+        _refuse_complex(params)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(
             f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}"
@@ -446,6 +448,18 @@ def _check_real_numbers(name, x):
                 else ""
             )
         )
+
+
+def _is_complex(x) -> bool:
+    return isinstance(x, complex) or (hasattr(x, "dtype") and np.iscomplexobj(x))
+
+
+def _refuse_complex(params):
+    bad = [jax.tree_util.keystr(path) for path, x in jax.tree_util.tree_leaves_with_path(params) if _is_complex(x)]
+    raise ValueError(
+        f"params{', params'.join(bad)} {'is' if len(bad) == 1 else 'are'} complex: jaxnh's energies, forces and "
+        "constraints take real parameters (SI units); pass the real part explicitly if the imaginary part is zero"
+    )
 
 
 def _is_jax_array(x, dtype) -> bool:

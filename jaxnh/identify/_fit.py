@@ -328,7 +328,16 @@ def prepare(
     y = data.observed(observe)
     n = data.n
     sigma = _noise(noise, observe, y)
+    _check_tolerance("rtol", rtol, positive=True)
+    _check_tolerance("atol", atol, positive=False)
     par = Parametrisation(params, free, positive)
+    for name, x in (("q0", q0), ("qd0", qd0)):
+        if x is not None and not np.all(np.isfinite(np.asarray(x, dtype=float))):
+            raise ValueError(f"{name} must be finite (a starting guess of the initial state); got {np.asarray(x)}")
+    start = np.asarray(par.pack())
+    if not np.all(np.isfinite(start)):
+        bad = [lab for lab, v in zip(par.labels, start) if not np.isfinite(v)]
+        raise ValueError(f"params: the starting values of the free parameters must be finite; {', '.join(bad)} are not")
     params = par.params
     f = jnp.result_type(float)
     t0 = float(data.t[0])
@@ -392,6 +401,16 @@ def prepare(
     theta0 = jnp.concatenate([jnp.asarray(x, f).reshape(-1) for x in theta0])
     obs = Observations(jnp.asarray(data.t, f), jnp.asarray(y, f), jnp.asarray(sigma, f))
     return problem, theta0, obs, names
+
+
+def _check_tolerance(name: str, value, positive: bool):
+    number = isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+    if not number or not (value > 0 if positive else value >= 0) or not np.isfinite(value):
+        raise ValueError(
+            f"{name}={value!r}: the ODE tolerance must be a finite number "
+            + ("> 0 (or 'auto')" if positive else "≥ 0")
+            + ", e.g. rtol=1e-8, atol=1e-10"
+        )
 
 
 def _noise(noise, observe, y):
@@ -558,6 +577,8 @@ def fit(
     if auto_rtol and rtol != "auto":
         raise ValueError(f"rtol must be a number or 'auto'; got {rtol!r}")
     rtol = AUTO_RTOL_START if auto_rtol else rtol
+    _check_tolerance("rtol", rtol, positive=True)
+    _check_tolerance("atol", atol, positive=False)
     kw: dict[str, Any] = dict(
         free=free,
         positive=positive,
