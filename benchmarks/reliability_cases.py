@@ -1472,10 +1472,6 @@ def _reverse_final(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
 # --- known library issues (found by these generators; reported, not hidden) -------------------
 
 KNOWN_ISSUES = {
-    "linearize-traced-nonlinear": (
-        "linearize under jit/vmap (traced inputs) skips the check of undeclared nonlinear constraints and "
-        "returns a finite, wrong state matrix."
-    ),
     "near-redundant-accepted": (
         "nearly parallel constraint rows: qd0 passes the consistency check (relative to ‖A_k‖·‖qd0‖) while it "
         "is far from the constraint manifold in the ill-conditioned direction; 'lagrange' keeps the violation "

@@ -74,15 +74,7 @@ def initial_checks(form, q, qd, t, params):
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
         scale = constraint_scale(A, qd, a)
         consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= jnp.sqrt(eps) * scale + tiny)
-        if mech.nonlinear_constraints:
-            linear_ok = jnp.asarray(True)
-        else:
-            # an affine c has a zero second difference c(qd + e) − 2 c(qd) + c(qd − e) in any direction e
-            # (no derivatives needed); e is a fixed direction, not along qd, on the scale of qd
-            k = jnp.arange(qd.shape[0], dtype=qd.dtype)
-            e = (1.0 + jnp.max(jnp.abs(qd))) * jnp.cos(1.0 + 2.3 * k)
-            second = c(qd + e) - 2 * c0 + c(qd - e)
-            linear_ok = jnp.all(jnp.abs(second) <= 1e-8 * (jnp.abs(A) @ (jnp.abs(qd) + jnp.abs(e)) + jnp.abs(a) + tiny))
+        linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
         form_ok, form_status = form.check(q, qd, t, params)
         # the first failure in this order is reported
         for good, item in (
@@ -94,6 +86,28 @@ def initial_checks(form, q, qd, t, params):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
     return ok, status
+
+
+def constraints_affine(mech, q, qd, t, params, A=None, a=None):
+    """Whether constraints declared linear in the velocities are (True when declared nonlinear).
+
+    An affine c has a zero second difference c(qd + e) − 2 c(qd) + c(qd − e) in any
+    direction e (no derivatives needed); e is a fixed direction, not along qd, on
+    the scale of qd. `A = ∂c/∂qd` and `a = c(q, 0, t)` are computed when not given.
+    """
+    if mech.nonlinear_constraints or mech.constraints is None:
+        return jnp.asarray(True)
+
+    def c(v):
+        return mech.constraint(q, v, t, params)
+
+    A = jax.jacfwd(c)(qd) if A is None else A
+    a = c(jnp.zeros_like(qd)) if a is None else a
+    tiny = jnp.finfo(q.dtype).tiny
+    k = jnp.arange(qd.shape[0], dtype=qd.dtype)
+    e = (1.0 + jnp.max(jnp.abs(qd))) * jnp.cos(1.0 + 2.3 * k)
+    second = c(qd + e) - 2 * c(qd) + c(qd - e)
+    return jnp.all(jnp.abs(second) <= 1e-8 * (jnp.abs(A) @ (jnp.abs(qd) + jnp.abs(e)) + jnp.abs(a) + tiny))
 
 
 def scaled_norm(x, axis=None):

@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._checks import constraints_affine
 from ._mechanism import Mechanism
 from ._status import is_traced
 from .equations.base import as_data, as_float, as_time
@@ -142,7 +143,10 @@ def linearize(
             ones, so a wrong value shows there.
 
     Returns:
-        A `Linearization`.
+        A `Linearization`. Invalid input raises a ValueError naming it when
+        the values are concrete; under `jit`/`vmap`/`grad` constraints
+        declared linear that are not (and NaN input, a singular mass matrix)
+        give NaN matrices, never a finite wrong one.
     """
     if method not in LINEAR_METHODS:
         raise ValueError(f"linearize: method must be one of {LINEAR_METHODS}; got {method!r}")
@@ -245,7 +249,13 @@ def _linearize(mech, params, q, qd, t, coordinates, speeds, method, complete, ac
     qc_rate, P = _value_and_jacobian(coordinate_rates, x0)
     A = jnp.concatenate([P, -solve_spd(mass, J[:, :n])], axis=0)
     rates = jnp.concatenate([qc_rate, vd0])
-    return A, mass, damping, stiffness, rates, x0
+    out = (A, mass, damping, stiffness, rates, x0)
+    if m and not mech.nonlinear_constraints:
+        # constraints declared linear that are not would give a finite, wrong matrix: NaN instead
+        # (the eager path raises a ValueError for this before, via `check_values`)
+        affine = constraints_affine(mech, q, qd, t, params)
+        out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
+    return out
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):

@@ -282,7 +282,7 @@ class Mechanism(eqx.Module):
         qd_np = np.asarray(qd)
         scale = np.asarray(constraint_scale(jnp.asarray(A), jnp.asarray(qd_np), jnp.asarray(c - A @ qd_np)))
         rtol = constraint_rtol if constraint_rtol is not None else float(np.finfo(c.dtype).eps) ** 0.5
-        if np.any(np.abs(c) > rtol * scale + np.finfo(c.dtype).tiny):
+        if np.isfinite(rtol) and np.any(np.abs(c) > rtol * scale + np.finfo(c.dtype).tiny):
             raise ValueError(
                 f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected "
                 f"≤ {rtol:.2g} × each constraint's velocity scale {scale} (‖∂c_k/∂qd‖ · ‖the velocities it "
