@@ -601,10 +601,12 @@ def _run_traced(
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=tsr), diffrax.SubSaveAt(t1=True)])
     dense = bool(saveat.dense)
     if event is not None:
+        # diffrax 0.7.0 (the oldest supported) has no `direction` on its Event; 0.7.2 has
+        direction = {"direction": event.direction} if hasattr(event, "direction") else {}
         event = diffrax.Event(
             jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
             root_finder=event.root_finder,
-            direction=event.direction,
+            **direction,
         )
     adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
     args = (form, params, ok)
