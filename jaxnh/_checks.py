@@ -29,7 +29,14 @@ from ._status import STATUS
 from .linalg import cholesky
 
 
-__all__ = ["initial_checks", "mass_matrix_ok", "diagnose_stall", "constraint_scale", "scaled_norm"]
+__all__ = [
+    "initial_checks",
+    "mass_matrix_ok",
+    "diagnose_stall",
+    "constraint_scale",
+    "consistency_tolerance",
+    "scaled_norm",
+]
 
 STALLED_SPLIT_BELOW = 1e-4
 """A failed solve whose last state has a dependent block this much worse conditioned than
@@ -57,8 +64,6 @@ def mass_matrix_ok(mech, q, qd, t, params):
 def initial_checks(form, q, qd, t, params):
     """(ok, STATUS) for the initial state (q, qd) at t of a bound formulation."""
     mech = form.mech
-    eps = jnp.finfo(q.dtype).eps
-    tiny = jnp.finfo(q.dtype).tiny
     pd = mass_matrix_ok(mech, q, qd, t, params)
     # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
@@ -72,8 +77,7 @@ def initial_checks(form, q, qd, t, params):
         A = jax.jacfwd(c)(qd)
         a = c(jnp.zeros_like(qd))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
-        scale = constraint_scale(A, qd, a)
-        consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= jnp.sqrt(eps) * scale + tiny)
+        consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= consistency_tolerance(A, qd, a))
         linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
         form_ok, form_status = form.check(q, qd, t, params)
         # the first failure in this order is reported
@@ -131,6 +135,21 @@ def constraint_scale(A, qd, a):
     involved = A != 0
     qd_k = jnp.where(involved, qd[None, :], 0.0)
     return scaled_norm(A, axis=1) * scaled_norm(qd_k, axis=1) + jnp.abs(a)
+
+
+ROUNDING_FLOOR = 1e3
+"""The consistency test also allows ROUNDING_FLOOR · eps · ‖A_k‖ · ‖qd0‖: the rounding of a
+constraint evaluated in floating point scales with every quantity it is computed from, and a
+rolling disc's c(q0, 0, t0) came out 1e-17 where its involved velocities are exactly zero."""
+
+
+def consistency_tolerance(A, qd, a):
+    """How far each constraint may miss zero at (q0, qd0) (m,): √eps of its own velocity
+    scale (`constraint_scale`) plus a rounding floor (`ROUNDING_FLOOR` · eps on the scale of
+    all velocities: far below any real violation, 3.5e-6 at a free speed of 1e7)."""
+    eps = jnp.finfo(qd.dtype).eps
+    floor = ROUNDING_FLOOR * eps * scaled_norm(A, axis=1) * scaled_norm(qd)
+    return jnp.sqrt(eps) * constraint_scale(A, qd, a) + floor + jnp.finfo(qd.dtype).tiny
 
 
 def _mass_diagonal(mech, q, qd, t, params):

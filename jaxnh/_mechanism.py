@@ -277,16 +277,15 @@ class Mechanism(eqx.Module):
         if not np.all(np.isfinite(c)):
             raise ValueError(f"Mechanism `constraints` is not finite at the initial state: c = {c}")
         # each constraint on its own velocity scale, as the compiled check judges it
-        from ._checks import constraint_scale
+        from ._checks import consistency_tolerance
 
         qd_np = np.asarray(qd)
-        scale = np.asarray(constraint_scale(jnp.asarray(A), jnp.asarray(qd_np), jnp.asarray(c - A @ qd_np)))
-        rtol = constraint_rtol if constraint_rtol is not None else float(np.finfo(c.dtype).eps) ** 0.5
-        if np.isfinite(rtol) and np.any(np.abs(c) > rtol * scale + np.finfo(c.dtype).tiny):
+        allowed = np.asarray(consistency_tolerance(jnp.asarray(A), jnp.asarray(qd_np), jnp.asarray(c - A @ qd_np)))
+        if constraint_rtol is None and np.any(np.abs(c) > allowed):
             raise ValueError(
-                f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected "
-                f"≤ {rtol:.2g} × each constraint's velocity scale {scale} (‖∂c_k/∂qd‖ · ‖the velocities it "
-                "involves‖ + |c_k(q0, 0, t0)|). "
+                f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected ≤ {allowed} "
+                "(√eps × each constraint's velocity scale ‖∂c_k/∂qd‖ · ‖the velocities it involves‖ + "
+                "|c_k(q0, 0, t0)|, plus rounding). "
                 "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
             )
         if not self.nonlinear_constraints and (
