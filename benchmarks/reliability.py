@@ -107,9 +107,7 @@ def run_simulate(tally, n_eager, n_jit, n_batches):
             tally.add("Mechanism(...)", "bad arguments", case, out, "")
     with timed(tally, "simulate, locked"):
         for case in R.draw(R.locked_cases(), 3 * n_jit):
-            lag = R.dataclasses.replace(
-                case, kw=dict(method="lagrange"), known="near-redundant-accepted" if "nearly" in case.cls else ""
-            )
+            lag = R.dataclasses.replace(case, kw=dict(method="lagrange"))
             tally.add("simulate, eager, 'lagrange'", case.cls, lag, R.run_eager(lag), case.what)
             tally.add("simulate, eager", case.cls, case, R.run_eager(case), case.what)
 
@@ -176,7 +174,7 @@ def _gm_cell(o):
 
 
 def _gm_case(c):
-    return R.dataclasses.replace(c["case"], known=c["known"], what=c["label"])
+    return R.dataclasses.replace(c["case"], what=c["label"])
 
 
 # --- the CSV reader (its generators: tests/test_fuzz_io.py) -----------------------------------------
@@ -289,7 +287,7 @@ def repro(row, case, outcome) -> str:
     return case.what
 
 
-def write(tally, cases_gm, args, elapsed):
+def write(tally, cases_gm, args, elapsed, undeclared=()):
     L = []
     add = L.append
     add("# Reliability report: no silent wrong answers (issue 15)")
@@ -458,8 +456,9 @@ def write(tally, cases_gm, args, elapsed):
     add("## The gradient-check matrix")
     add("")
     add(
-        "The variator (shafts family, third shaft idle) with viscous damping at the rate c on shaft 1, "
-        "the ratio step `U21 = 1.2 + 0.3 tanh(k (t − tsw))` and horizons of 2 s and 100 s; "
+        "The variator with viscous damping at the rate c on shaft 1, the ratio step "
+        "`U21 = 1.2 + 0.3 tanh(k (t − tsw))` as a `jaxnh.profiles.SmoothStep` in the parameters (so "
+        "`simulate` ends a step at its middle and edges) and horizons of 2 s and 100 s; "
         "∂phi1(T)/∂c and ∂phi1(T)/∂J2 by `jax.grad` through `simulate` (default: forward "
         "sensitivities), by reverse mode (`diffrax.RecursiveCheckpointAdjoint`), and phi1(T) of the "
         "plain solve."
@@ -470,6 +469,25 @@ def write(tally, cases_gm, args, elapsed):
     for c, (a, b, r) in zip(cases_gm, tally.gm_rows):
         add(f"| {c['p']['c']:.0e} | {c['p']['k']:.0e} | {c['T']:g} | {a} | {b} | {r} |")
     add("")
+    if undeclared:
+        add("### Limitation: a steep change written by hand, not declared")
+        add("")
+        add(
+            "The steepest step (k = 1e7 /s, 0.1 µs) written by hand inside the constraint (the shafts "
+            "family's `ratio`, no `step_ts`, no profile): an adaptive solver samples the law only at its "
+            "stages, 0.01–1 s apart here, and a change between two of them leaves no trace in its error "
+            "estimate, so nothing can report it. Not counted among the outcomes above: `simulate`'s "
+            "docstring (`step_ts`) and the profiles' (`SmoothStep`, breakpoints) say to declare such a "
+            "change; declared, it is the k = 1e7 rows of the matrix. Measured by `run_gradient_matrix_undeclared`:"
+        )
+        add("")
+        add("| c (1/s) | T (s) | status | phi1(T) rel. error | ∂/∂c rel. error | ∂/∂J2 rel. error |")
+        add("|---:|---:|---|---:|---:|---:|")
+        for c, (code, got, ref) in undeclared:
+            err = np.abs(got - ref) / np.abs(ref)
+            st = "success" if code == 0 else nh._status.describe(code)[:40]
+            add(f"| {c['p']['c']:.0e} | {c['T']:g} | {st} | " + " | ".join(f"{e:.1e}" for e in err) + " |")
+        add("")
     add("CPU time per part (s): " + ", ".join(f"{k} {v:.0f}" for k, v in tally.seconds.items()) + ".")
     add("")
     OUT.write_text("\n".join(L))
@@ -504,9 +522,11 @@ def main(argv=None):
         ):
             tally.add(api, _gm_class(c), _gm_case(c), o, "")
         tally.gm_rows.append(tuple(_gm_cell(o) for o in (a, b, r)))
+    steep_light = [c for c in cases_gm if c["p"]["k"] >= 1e6 and c["p"]["c"] <= 1e2]
+    undeclared = list(zip(steep_light, R.run_gradient_matrix_undeclared(steep_light)))
     run_fit(tally, n["fit"])
     run_csv(tally, n["csv"], n["bytes"])
-    n_sw, unknown = write(tally, cases_gm, args, time.process_time() - started)
+    n_sw, unknown = write(tally, cases_gm, args, time.process_time() - started, undeclared)
     print(f"wrote {OUT}: {n_sw} silent wrong ({unknown} outside the known issues)")
     return 1 if unknown else 0
 

@@ -10,11 +10,19 @@ reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
 * every constraint involves the velocities (a zero row of ∂c/∂qd is a
   holonomic constraint written as a nonholonomic one);
 * constraints declared linear in the velocities are (∂²c/∂qd² = 0);
+* the constraint rows are either independent or dependent to rounding, not
+  nearly dependent (`nearly_dependent`: no singular value of the
+  row-normalised ∂c/∂qd between `DEPENDENT_BELOW` and `INDEPENDENT_ABOVE`
+  of the largest; in between, which constraints bind is decided by rounding
+  and a change of a coefficient in its 10th digit can lock or free a motion);
 * qd0 satisfies each constraint k to √eps relative to its velocity scale
   `‖A_k‖·‖qd0 over the coordinates it involves‖ + |c_k(q0, 0, t0)|`
   (`constraint_scale`; an absolute test would pass a 50 % violation of tiny
   velocities, and the norm of all of qd0 would let a large velocity
-  elsewhere hide a violation);
+  elsewhere hide a violation), and the smallest correction that meets all
+  constraints is no longer than `DISTANCE_FACTOR` times those allowances
+  (`consistent`: with ill-conditioned rows a small residual can hide a
+  velocity far from the constraint manifold);
 * the formulation's own checks (Appell's: a regular dependent-velocity block).
 """
 
@@ -36,6 +44,8 @@ __all__ = [
     "constraint_scale",
     "consistency_tolerance",
     "scaled_norm",
+    "nearly_dependent",
+    "consistent",
 ]
 
 STALLED_SPLIT_BELOW = 1e-4
@@ -77,15 +87,17 @@ def initial_checks(form, q, qd, t, params):
         A = jax.jacfwd(c)(qd)
         a = c(jnp.zeros_like(qd))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
-        consistent = jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.abs(c0) <= consistency_tolerance(A, qd, a))
+        on_manifold = consistent(A, c0, qd, a)
         linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
+        near = nearly_dependent(A)
         form_ok, form_status = form.check(q, qd, t, params)
         # the first failure in this order is reported
         for good, item in (
             (~velocity_free, STATUS.velocity_free_constraint),
             (linear_ok, STATUS.constraints_nonlinear),
+            (~near, STATUS.constraints_nearly_dependent),
             (form_ok, form_status),
-            (consistent, STATUS.inconsistent_velocities),
+            (on_manifold, STATUS.inconsistent_velocities),
         ):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
@@ -150,6 +162,63 @@ def consistency_tolerance(A, qd, a):
     eps = jnp.finfo(qd.dtype).eps
     floor = ROUNDING_FLOOR * eps * scaled_norm(A, axis=1) * scaled_norm(qd)
     return jnp.sqrt(eps) * constraint_scale(A, qd, a) + floor + jnp.finfo(qd.dtype).tiny
+
+
+DEPENDENT_BELOW = 1e2
+"""Singular values of the row-normalised constraint matrix below DEPENDENT_BELOW · eps of the
+largest are rows that repeat others to rounding (redundant constraints: 'lagrange' drops them)."""
+INDEPENDENT_ABOVE = 1e-5
+"""Singular values above INDEPENDENT_ABOVE of the largest are independent constraints, enforced
+('lagrange' keeps a row whose multiplier pivot, ≈ the square of this ratio, exceeds 1e4 eps)."""
+DISTANCE_FACTOR = 10.0
+"""The smallest velocity correction onto the constraints may be this many times the per-row
+allowances (√eps of each row's scale over ‖A_k‖); a well-conditioned set needs a factor ≤ 1/σ_min."""
+
+
+def _normalised_rows(A):
+    """(A with unit rows, the row norms); a zero row stays zero."""
+    n = scaled_norm(A, axis=1)
+    return A / jnp.where(n > 0, n, 1.0)[:, None], n
+
+
+def _singular_values(As):
+    """Singular values of the row-normalised A (m,), largest first; rows beyond the number of
+    coordinates add exact zeros (they must depend on the others)."""
+    m, n = As.shape
+    S = jnp.linalg.svd(jax.lax.stop_gradient(As), compute_uv=False)
+    return jnp.concatenate([S, jnp.zeros((max(m - n, 0),), As.dtype)]) if m > n else S
+
+
+def nearly_dependent(A):
+    """Whether the constraint rows are nearly, but not exactly, dependent: a singular value of
+    the row-normalised A in (DEPENDENT_BELOW · eps, INDEPENDENT_ABOVE) × the largest. Rows that
+    are dependent to rounding (a constraint written twice) and independent rows both pass."""
+    if A.shape[0] < 2:
+        return jnp.asarray(False)
+    eps = jnp.finfo(A.dtype).eps
+    S = _singular_values(_normalised_rows(A)[0])
+    r = S / jnp.where(S[0] > 0, S[0], 1.0)
+    return jnp.any((r > DEPENDENT_BELOW * eps) & (r < INDEPENDENT_ABOVE))
+
+
+def consistent(A, c, qd, a):
+    """Whether qd meets the constraints `c = A qd + a` (m,) at their tolerance: each residual
+    within `consistency_tolerance`, and the minimum-norm correction δ (A δ = c over the
+    independent rows) within DISTANCE_FACTOR × the per-row allowances in velocity units."""
+    tol = consistency_tolerance(A, qd, a)
+    rows = jnp.all(jnp.isfinite(c)) & jnp.all(jnp.abs(c) <= tol)
+    if A.shape[0] < 2:
+        return rows
+    eps = jnp.finfo(A.dtype).eps
+    As, n = _normalised_rows(A)
+    safe = jnp.where(n > 0, n, 1.0)
+    U, S, Vt = jnp.linalg.svd(jax.lax.stop_gradient(As), full_matrices=False)
+    keep = S > DEPENDENT_BELOW * eps * S[0]
+    Sinv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
+    cs = jax.lax.stop_gradient(c) / safe
+    delta = Vt.T @ (Sinv * (U.T @ cs))
+    allowed = DISTANCE_FACTOR * scaled_norm(jax.lax.stop_gradient(tol) / safe)
+    return rows & (scaled_norm(delta) <= allowed)
 
 
 def _mass_diagonal(mech, q, qd, t, params):

@@ -277,15 +277,26 @@ class Mechanism(eqx.Module):
         if not np.all(np.isfinite(c)):
             raise ValueError(f"Mechanism `constraints` is not finite at the initial state: c = {c}")
         # each constraint on its own velocity scale, as the compiled check judges it
-        from ._checks import consistency_tolerance
+        from ._checks import consistency_tolerance, consistent, nearly_dependent
 
         qd_np = np.asarray(qd)
-        allowed = np.asarray(consistency_tolerance(jnp.asarray(A), jnp.asarray(qd_np), jnp.asarray(c - A @ qd_np)))
-        if constraint_rtol is None and np.any(np.abs(c) > allowed):
+        A_j, c_j, qd_j = jnp.asarray(A), jnp.asarray(c), jnp.asarray(qd_np)
+        if bool(nearly_dependent(A_j)):
+            sv = np.linalg.svd(A / np.linalg.norm(A, axis=1)[:, None], compute_uv=False)
+            raise ValueError(
+                "Mechanism `constraints`: the rows of ∂c/∂qd at the initial state are nearly dependent "
+                f"(singular values of the row-normalised matrix {sv}; "
+                "one lies between 1e2 eps and 1e-5 of the largest). Whether the near-repeat binds is decided "
+                "by rounding: write a repeated constraint identically or leave it out, or reformulate the "
+                "constraints so that their rows are well apart."
+            )
+        allowed = np.asarray(consistency_tolerance(A_j, qd_j, c_j - A_j @ qd_j))
+        if constraint_rtol is None and not bool(consistent(A_j, c_j, qd_j, c_j - A_j @ qd_j)):
             raise ValueError(
                 f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected ≤ {allowed} "
                 "(√eps × each constraint's velocity scale ‖∂c_k/∂qd‖ · ‖the velocities it involves‖ + "
-                "|c_k(q0, 0, t0)|, plus rounding). "
+                "|c_k(q0, 0, t0)|, plus rounding), and a smallest correction onto the constraints of at most "
+                "10 times those allowances. "
                 "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
             )
         if not self.nonlinear_constraints and (

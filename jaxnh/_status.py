@@ -37,7 +37,9 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     inconsistent_velocities = (
         "qd0 violates the nonholonomic constraints by more than √eps relative to the velocity "
-        "scale ‖A_k‖·‖the velocities constraint k involves‖ + |c_k(q0, 0, t0)| of each constraint k. "
+        "scale ‖A_k‖·‖the velocities constraint k involves‖ + |c_k(q0, 0, t0)| of each constraint k, "
+        "or the smallest velocity change that meets them all is more than 10 times those allowances "
+        "(ill-conditioned constraint rows). "
         "Use jaxnh.consistent_velocities(mech, q0, qd0, t0, params) to project qd0 onto the constraints."
     )
     velocity_free_constraint = (
@@ -48,6 +50,15 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     constraints_nonlinear = (
         "The constraints are nonlinear in the velocities (∂²c/∂qd² ≠ 0 at the initial state): "
         "pass nonlinear_constraints=True to Mechanism."
+    )
+    constraints_nearly_dependent = (
+        "The constraint rows are nearly dependent at the initial state: a singular value of "
+        "∂c/∂qd with unit rows lies between 1e2 eps and 1e-5 of the largest. Such rows are "
+        "neither a constraint repeated (dependent to rounding, which method='lagrange' accepts) "
+        "nor independent enough to be enforced reliably: whether the near-repeat binds, and so "
+        "whether a motion is locked or free, is decided by rounding. If a constraint repeats "
+        "another, write it identically or leave it out; if it is meant to be independent, "
+        "rescale or reformulate the constraints so that their rows are well apart."
     )
     singular_split = (
         "The dependent-velocity block of the constraint matrix is singular: the constraints are "
@@ -105,6 +116,7 @@ INPUT_FAILURES = (
     "inconsistent_velocities",
     "velocity_free_constraint",
     "constraints_nonlinear",
+    "constraints_nearly_dependent",
 )
 
 

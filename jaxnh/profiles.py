@@ -16,17 +16,33 @@ Kinds:
   the solver's step control is undisturbed); the values are the trainable
   leaves. For a handful to a few dozen knots.
 * `Fourier` — a truncated Fourier series.
+* `SmoothStep` — a change from one value to another over a given width
+  (tanh): a ratio shift, a clutch engaging. However steep, it is resolved:
+  `simulate` ends a step at its middle and its edges (see below).
 * `Sampled` — a measured signal (e.g. an applied torque) given at many
   sample times, interpolated by a C² cubic spline prepared once; an input,
   not something to fit.
 * `Positive`, `Bounded` — map any profile into (0, ∞) or (lower, upper), so a
   physical limit holds for every value of the trainable leaves.
+
+Breakpoints. An adaptive solver sees a law only at its stage times, so a
+change much shorter than its steps (a 0.1 µs ratio step in a run whose
+steps are 0.1 s) can fall between two stages and be stepped over without
+any sign in the error estimate; a kink costs rejected steps. A profile
+therefore declares the times where it has such features
+(`Profile.breakpoints()`: the knots of `PiecewiseLinear` and of a linear
+`Sampled`, the middle and edges of a `SmoothStep`), and `simulate` collects
+them from the profiles in `params` and ends a step at each (diffrax's
+`ClipStepSizeController`); from there the error control resolves the
+feature. A steep feature written by hand inside `kinetic`, `constraints`
+or `forces` is invisible to any step-size control: pass its time in
+`simulate(..., step_ts=...)`, or write it as a `SmoothStep`.
 """
 
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+from typing import ClassVar, Optional
 
 import equinox as eqx
 import jax
@@ -40,6 +56,7 @@ __all__ = [
     "Profile",
     "Constant",
     "Fourier",
+    "SmoothStep",
     "PiecewiseLinear",
     "CubicSpline",
     "Sampled",
@@ -61,6 +78,12 @@ class Profile(eqx.Module):
     @abc.abstractmethod
     def __call__(self, t) -> jax.Array:
         """Value at time t."""
+
+    def breakpoints(self) -> Optional[jax.Array]:
+        """Times (s, an array) at which `simulate` ends a step: kinks, and the middle and
+        edges of changes steeper than the solver's steps would see; None when there are
+        none (the default)."""
+        return None
 
     def derivative(self, t):
         """d/dt of the profile at t, by automatic differentiation."""
@@ -84,6 +107,21 @@ def trainable(tree):
         return eqx.is_inexact_array(x)
 
     return jax.tree_util.tree_map(mark, tree, is_leaf=lambda x: isinstance(x, Profile))
+
+
+def declared_breakpoints(params, dtype=None):
+    """The breakpoints of all profiles in a params pytree, one sorted 1-D array (s), or
+    None when no profile declares any. Batched profiles (under `vmap`) give batched
+    arrays, each sorted."""
+    found = [
+        leaf.breakpoints()
+        for leaf in jax.tree_util.tree_leaves(params, is_leaf=lambda x: isinstance(x, Profile))
+        if isinstance(leaf, Profile)
+    ]
+    found = [jnp.ravel(jnp.asarray(b, dtype=dtype)) for b in found if b is not None]
+    if not found:
+        return None
+    return jnp.sort(jnp.concatenate(found))
 
 
 def _float(x):
@@ -151,6 +189,36 @@ class Fourier(Profile):
         return self.mean + jnp.sum(self.cos * jnp.cos(w) + self.sin * jnp.sin(w))
 
 
+class SmoothStep(Profile):
+    """A smooth change from `before` to `after` centred at time `at` (s) over the
+    time scale `width` (s): `before + (after − before) · (1 + tanh((t − at)/width)) / 2`.
+
+    Units are those of the quantity (a ratio is dimensionless). 76 % of the
+    change happens within `at ± width`, 99.5 % within `at ± 3 width`. Its
+    breakpoints are `at − 3 width`, `at` and `at + 3 width`, so `simulate`
+    resolves it however short it is compared with the rest of the motion.
+    The two values are trainable; the time and the width are held fixed.
+    """
+
+    before: Float[Array, ""]
+    after: Float[Array, ""]
+    at: Float[Array, ""]
+    width: Float[Array, ""]
+    trainable_fields: ClassVar[tuple] = ("before", "after")
+
+    def __init__(self, before, after, at, width):
+        self.before, self.after, self.at, self.width = (_float(x) for x in (before, after, at, width))
+        w = self.width
+        if not isinstance(w, jax.core.Tracer) and not np.all(np.asarray(w) > 0):
+            raise ValueError(f"SmoothStep: width must be > 0 (s); got {np.asarray(w)}")
+
+    def __call__(self, t):
+        return self.before + (self.after - self.before) * 0.5 * (1.0 + jnp.tanh((t - self.at) / self.width))
+
+    def breakpoints(self) -> Optional[jax.Array]:
+        return jnp.stack([self.at - 3 * self.width, self.at, self.at + 3 * self.width])
+
+
 class PiecewiseLinear(Profile):
     """Straight lines through `values` at the knot times `knots` (s); constant
     beyond the first and last knot.
@@ -169,6 +237,9 @@ class PiecewiseLinear(Profile):
 
     def __call__(self, t):
         return _linear(self.knots, self.values, t)
+
+    def breakpoints(self) -> Optional[jax.Array]:
+        return self.knots
 
 
 @jax.jit
@@ -291,6 +362,9 @@ class Sampled(Profile):
             return _linear(self.knots, self.values, t)
         return _cubic(self.knots, self.values, self.moments, t)
 
+    def breakpoints(self) -> Optional[jax.Array]:
+        return self.knots if self.kind == "linear" else None
+
 
 def _natural_moments_np(x, y):
     """Natural-spline second derivatives by a banded solve (NumPy/SciPy)."""
@@ -330,6 +404,9 @@ class Positive(Profile):
 
     def __call__(self, t):
         return self.scale * jnp.exp(self.inner(t))
+
+    def breakpoints(self) -> Optional[jax.Array]:
+        return self.inner.breakpoints()
 
     @classmethod
     def of(cls, profile: Profile) -> "Positive":
@@ -372,6 +449,9 @@ class Bounded(Profile):
 
     def __call__(self, t):
         return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(self.inner(t))
+
+    def breakpoints(self) -> Optional[jax.Array]:
+        return self.inner.breakpoints()
 
     @staticmethod
     def inverse(value, lower, upper):

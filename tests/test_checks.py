@@ -67,3 +67,49 @@ def test_mass_matrix_check_at_extreme_inertias(scale):
     sol = nh.simulate(MECH, p, jnp.zeros(3), jnp.array([1.0, 1.2, 0.0]), TS, throw=False)
     assert sol.message == "success"
     np.testing.assert_allclose(np.asarray(sol.q[-1]), [1.0, 1.2, 0.0], rtol=1e-12)
+
+
+# --- nearly dependent rows, and the distance to the constraint manifold ------------------------
+#
+# Three shafts, two constraints: phi1' − phi2' = 0 and (1 + d) phi1' − phi2' + e phi3' = 0.
+# d = 0, e = 0: the second row repeats the first (redundant: 'lagrange' accepts it).
+# e = 1e-9: rows apart by 1e-9 of their length, neither repeated to rounding nor independent
+# enough to enforce (which motions are locked is decided by rounding): refused.
+# e = 1e-3: independent, but ill-conditioned (σ_min/σ_max ≈ 7e-4): a qd0 whose second residual
+# is 1e-9 of its scale (within √eps per row) needs a correction of ≈ 1e-6 of the speeds along
+# phi3' to meet both: refused as inconsistent, while the exactly consistent state runs.
+
+
+def two_rows(q, qd, t, p):
+    return jnp.stack([qd[0] - qd[1], (1.0 + p["d"]) * qd[0] - qd[1] + p["e"] * qd[2]])
+
+
+MECH2 = nh.Mechanism(T, constraints=two_rows)
+ROW_CASES = [
+    # (d, e, qd0, expected status name)
+    (0.0, 0.0, [1.0, 1.0, 0.3], "successful"),
+    (0.0, 1e-9, [1.0, 1.0, 0.0], "constraints_nearly_dependent"),
+    (0.0, 1e-3, [1.0, 1.0, 0.0], "successful"),
+    (0.0, 1e-3, [1.0, 1.0, 1e-6], "inconsistent_velocities"),
+]
+
+
+def row_status(d, e, qd0):
+    p = dict(P, d=d, e=e)
+    return nh.simulate(MECH2, p, jnp.zeros(3), qd0, TS, "lagrange", throw=False).status._value
+
+
+def test_nearly_dependent_rows_refused_and_distance_judged():
+    args = [(jnp.asarray(d), jnp.asarray(e), jnp.asarray(qd0, dtype=float)) for d, e, qd0, _ in ROW_CASES]
+    want = [int(nh.STATUS._name_to_item[name]._value) for *_, name in ROW_CASES]
+    eager = [int(row_status(*a)) for a in args]
+    jitted = jax.jit(row_status)
+    batched = jax.vmap(row_status)(*(jnp.stack(x) for x in zip(*args)))
+    assert eager == [int(jitted(*a)) for a in args] == list(np.asarray(batched)) == want
+    # the per-row residual of the refused state is within the per-row tolerance: only the
+    # distance test catches it (c2 = 1e-9, scale ≈ 1.4, √eps × scale ≈ 2e-8)
+    c = two_rows(None, jnp.asarray(ROW_CASES[3][2]), 0.0, dict(d=0.0, e=1e-3))
+    assert abs(float(c[1])) < 2e-8
+    # the eager check of a concrete call raises naming the constraints
+    with pytest.raises(ValueError, match="nearly dependent"):
+        nh.simulate(MECH2, dict(P, d=0.0, e=1e-9), jnp.zeros(3), jnp.array([1.0, 1.0, 0.0]), TS, "lagrange")

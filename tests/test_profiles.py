@@ -153,3 +153,50 @@ def test_jit_vmap_grad_through_a_spline():
     out, out2 = batched(batch)
     np.testing.assert_allclose(out, np.array([1, 2, -1]) * ev(CubicSpline(KNOTS, v), [1.234])[0], rtol=1e-12)
     np.testing.assert_allclose(out2, out, rtol=1e-14)
+
+
+def test_smooth_step_and_declared_breakpoints():
+    """SmoothStep against its closed form; breakpoints declared by kinked and steep profiles,
+    through wrappers and nested params; none from smooth ones."""
+    from jaxnh.profiles import declared_breakpoints, SmoothStep
+
+    s = SmoothStep(1.0, 3.0, 2.0, 0.1)
+    for t in (0.0, 1.9, 2.0, 2.05, 5.0):
+        assert float(s(t)) == pytest.approx(1.0 + 2.0 * 0.5 * (1 + np.tanh((t - 2.0) / 0.1)), rel=1e-15)
+    assert float(s.derivative(2.0)) == pytest.approx(2.0 * 0.5 / 0.1, rel=1e-12)
+    np.testing.assert_allclose(np.asarray(s.breakpoints()), [1.7, 2.0, 2.3], rtol=1e-15)
+    with pytest.raises(ValueError, match="width"):
+        SmoothStep(1.0, 2.0, 0.0, 0.0)
+    lin = PiecewiseLinear([0.0, 1.0, 4.0], [1.0, 2.0, 0.5])
+    params = {"a": 1.0, "laws": [Positive.of(lin), CubicSpline([0.0, 1.0, 2.0], [1.0, 2.0, 1.0])], "s": s}
+    np.testing.assert_allclose(np.asarray(declared_breakpoints(params)), [0.0, 1.0, 1.7, 2.0, 2.3, 4.0])
+    assert declared_breakpoints({"a": Constant(1.0), "b": Sampled([0.0, 1.0, 2.0], [0.0, 1.0, 0.0])}) is None
+    assert Sampled([0.0, 1.0, 2.0], [0.0, 1.0, 0.0], kind="linear").breakpoints() is not None
+
+
+def test_step_ts_with_own_controllers():
+    """Declared breakpoints and step_ts wrap an own PIDController; step_ts with a controller that
+    cannot take them is refused naming step_ts."""
+    import diffrax
+
+    from jaxnh.profiles import SmoothStep
+
+    def T(q, qd, t, p):
+        return 0.5 * qd[0] ** 2
+
+    def Q(q, qd, t, p):
+        return jnp.stack([p["F"].derivative(t)])
+
+    mech = jaxnh.Mechanism(T, forces=Q)
+    p = {"F": SmoothStep(0.0, 1.0, 43.21, 1e-8)}  # force = its rate: a unit impulse 10 ns wide at 43.21 s
+    ts = jnp.linspace(0.0, 100.0, 3)
+    pid = diffrax.PIDController(rtol=1e-9, atol=1e-12)
+    for ctrl in (None, pid):
+        sol = jaxnh.simulate(mech, p, jnp.zeros(1), jnp.zeros(1), ts, stepsize_controller=ctrl)
+        # the unit impulse sets qd = 1 (the smoothing cancels by symmetry): q(100) = 100 − 43.21; the
+        # same pulse written by hand (no breakpoints) falls between the stages: q(100) came out 0
+        assert float(sol.q[-1, 0]) == pytest.approx(56.79, rel=1e-6)
+    with pytest.raises(ValueError, match="step_ts"):
+        jaxnh.simulate(
+            mech, p, jnp.zeros(1), jnp.zeros(1), ts, stepsize_controller=diffrax.ConstantStepSize(), step_ts=[0.5]
+        )
