@@ -16,6 +16,7 @@ user's cache directory (`jaxnh._cache`; `JAXNH_CACHE_DIR=off` disables it).
 """
 
 import os
+from typing import TYPE_CHECKING
 
 import jax
 
@@ -28,7 +29,7 @@ from ._cache import setup_compilation_cache  # noqa: E402
 
 setup_compilation_cache()
 
-from . import design, equations, identify, linalg, models, profiles, rigid, solvers  # noqa: E402
+from . import equations, linalg, models, profiles, rigid, solvers  # noqa: E402
 from ._consistent import consistent_velocities  # noqa: E402
 from ._holonomic import HolonomicMechanism  # noqa: E402
 from ._linearize import Linearization, linearize  # noqa: E402
@@ -49,8 +50,39 @@ from .equations import (  # noqa: E402
     METHODS,
     Substituted,
 )
-from .identify import fit, FitResult, Record  # noqa: E402
-from .identify.spec import FitSpec  # noqa: E402
+
+
+# Identification and design (optax, plotting helpers) are imported on first use: a script that
+# only simulates does not pay for them (0.1 s of the import).
+if TYPE_CHECKING:
+    from . import design, identify
+    from .identify import fit, FitResult, Record
+    from .identify.spec import FitSpec
+
+_LAZY = {
+    "design": ("jaxnh.design", None),
+    "identify": ("jaxnh.identify", None),
+    "fit": ("jaxnh.identify", "fit"),
+    "FitResult": ("jaxnh.identify", "FitResult"),
+    "Record": ("jaxnh.identify", "Record"),
+    "FitSpec": ("jaxnh.identify.spec", "FitSpec"),
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        value = importlib.import_module(module)
+        value = value if attr is None else getattr(value, attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'jaxnh' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
 
 
 __version__ = "0.1.0"

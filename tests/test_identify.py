@@ -384,3 +384,21 @@ def test_argument_errors_name_the_argument():
     assert isinstance(p.U21, CubicSpline)
     np.testing.assert_allclose(back.U21.values, p.U21.values, rtol=1e-15)
     np.testing.assert_allclose(back.J2, p.J2, rtol=1e-15)
+
+
+def test_savgol_derivative_matches_scipy():
+    """The starting guess's own Savitzky–Golay derivative (no scipy.signal import) equals SciPy's
+    savgol_filter(mode="interp") to rounding, inside and at both ends of the record."""
+    from scipy.signal import savgol_filter
+
+    from jaxnh.identify.variator import savgol_derivative
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0.0, 6.0, 1501)
+    y = np.sin(3 * t) + 0.01 * rng.normal(size=t.size)
+    dt = t[1] - t[0]
+    for deriv in (1, 2):
+        for window in (7, 31, 61):
+            ours = np.asarray(savgol_derivative(y, window, 3, deriv, dt))
+            ref = np.asarray(savgol_filter(y, window, 3, deriv=deriv, delta=dt))
+            np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-10 * np.max(np.abs(ref)))

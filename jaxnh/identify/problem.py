@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import exported_call
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
 from .._simulate import simulate
@@ -279,9 +280,18 @@ def _jacfwd(problem, theta, data):
     return r, J
 
 
-@eqx.filter_jit
 def value_and_jacobian(problem: Problem, theta, data: Observations):
-    """Residuals r (N,) and their Jacobian J (N, size) at θ, by forward mode."""
+    """Residuals r (N,) and their Jacobian J (N, size) at θ, by forward mode.
+
+    Compiled once per problem structure. For problems built from jaxnh's own models
+    (the CLI's variator) the traced program is also kept on disk (`jaxnh._export`), so
+    a second process skips tracing it."""
+    out = exported_call(_jacfwd, (problem, theta, data), name="value_and_jacobian")
+    return _value_and_jacobian(problem, theta, data) if out is None else out
+
+
+@eqx.filter_jit
+def _value_and_jacobian(problem: Problem, theta, data: Observations):
     return _jacfwd(problem, theta, data)
 
 

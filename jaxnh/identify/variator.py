@@ -13,6 +13,8 @@ is linear in J1 and J2, so ordinary least squares gives them.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,6 +64,32 @@ def _ratio_and_rate(U21, t):
     return jax.vmap(U21)(t), jax.vmap(U21.derivative)(t)
 
 
+def savgol_derivative(y, window: int, order: int, deriv: int, dt: float) -> np.ndarray:
+    """The `deriv`-th time derivative of samples `y` (spaced `dt` s) by a Savitzky–Golay
+    filter: at each sample, the derivative of the least-squares polynomial of degree
+    `order` through the `window` (odd) samples centred on it; within half a window of
+    either end, of the polynomial through the first or last `window` samples (the same
+    result as SciPy's `savgol_filter(..., mode="interp")`, without importing scipy.signal,
+    which takes a second). Units: those of y per s**deriv."""
+    y = np.asarray(y, dtype=float)
+    half = window // 2
+    x = np.arange(-half, half + 1, dtype=float)
+    P = np.linalg.pinv(np.vander(x, order + 1, increasing=True))  # window samples → coefficients
+
+    def at(coef, xs):  # d^deriv/dx^deriv of Σ coef_k x^k at xs, per dt^deriv
+        out = np.zeros_like(xs)
+        for k in range(deriv, order + 1):
+            out += coef[k] * math.factorial(k) / math.factorial(k - deriv) * xs ** (k - deriv)
+        return out / dt**deriv
+
+    w = P[deriv] * math.factorial(deriv) / dt**deriv
+    res = np.empty_like(y)
+    res[half : len(y) - half] = np.correlate(y, w, mode="valid")
+    res[:half] = at(P @ y[:window], x[:half])
+    res[len(y) - half :] = at(P @ y[-window:], x[half + 1 :])
+    return res
+
+
 def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     """Starting J1, J2 (kg·m²) and U21 spline from the data by the equation-error method.
 
@@ -72,8 +100,6 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     Returns:
         `(J1, J2, U21)` with U21 a `CubicSpline` on `knots`.
     """
-    from scipy.signal import savgol_filter
-
     t = record.t
     dt = float(np.median(np.diff(t)))
     win = max(7, int(round(SMOOTHING_WINDOW / dt)) | 1)  # odd window of about 0.12 s
@@ -81,8 +107,8 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
         win = len(t) if len(t) % 2 else len(t) - 1
     d = {
         c: (
-            np.asarray(savgol_filter(record.channels[c], win, 3, deriv=1, delta=dt), dtype=float),
-            np.asarray(savgol_filter(record.channels[c], win, 3, deriv=2, delta=dt), dtype=float),
+            savgol_derivative(record.channels[c], win, 3, 1, dt),
+            savgol_derivative(record.channels[c], win, 3, 2, dt),
         )
         for c in observe
         if c in record.channels

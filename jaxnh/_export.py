@@ -1,0 +1,222 @@
+"""Programs kept on disk as traced, exported StableHLO (`jax.export`), so that a second
+process skips tracing them.
+
+The persistent compilation cache (`jaxnh._cache`) saves XLA's compilation, but every
+process still traces and lowers its programs first: for the fit's residual Jacobian
+(a forward-sensitivity solve, vmapped over the free parameters) that is 2 s of the
+5 s of a warm `jaxnh fit`. An exported program is loaded instead and compiled (from the
+persistent cache when it is there).
+
+Only programs built entirely from jaxnh's own code are kept: the key is a fingerprint
+of everything static in the arguments (types, static fields, Python numbers, shapes
+and dtypes of the arrays), the versions of jax, jaxlib, diffrax and equinox, the
+backend, and a digest of jaxnh's source files. A function from outside the jaxnh
+package (a user's kinetic energy, say) could change without changing anything the
+fingerprint sees (a helper it calls), so arguments holding one are never exported:
+such calls run as before. So are calls under a trace, and programs JAX cannot export
+(host callbacks); both fall back to the ordinary compiled path.
+
+Files live in `<cache folder>/exported/` (the folder jaxnh's compilation cache uses and
+checks: owned by the user, mode 0700), are written atomically and read only from there.
+`JAXNH_CACHE_DIR=off` turns this off with the compilation cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import os
+import tempfile
+import types
+from typing import Any, Callable, Optional
+
+import jax
+import jax.core
+import numpy as np
+
+
+__all__ = ["exported_call"]
+
+_MEMO: dict = {}
+"""key → jitted call of the deserialized program (one load per process)."""
+_REFUSED: set = set()
+"""keys that could not be exported (host callbacks, ...): not tried again in this process."""
+
+
+class _Unstable(Exception):
+    """Something in the arguments has no fingerprint that identifies the program."""
+
+
+@functools.lru_cache(maxsize=1)
+def _source_digest() -> str:
+    """SHA-256 over jaxnh's Python sources (a changed file changes every key)."""
+    root = os.path.dirname(os.path.abspath(__file__))
+    h = hashlib.sha256()
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames.sort()
+        for name in sorted(filenames):
+            if name.endswith(".py"):
+                path = os.path.join(dirpath, name)
+                h.update(os.path.relpath(path, root).encode())
+                with open(path, "rb") as f:
+                    h.update(f.read())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _versions() -> str:
+    from importlib.metadata import version
+
+    names = ("jax", "jaxlib", "diffrax", "equinox", "lineax", "optimistix")
+    return " ".join(f"{name} {version(name)}" for name in names)
+
+
+def _own(obj) -> bool:
+    module = getattr(obj, "__module__", None) or ""
+    return module == "jaxnh" or module.startswith("jaxnh.")
+
+
+def _fingerprint(x, depth: int = 0) -> Any:
+    """A nested tuple of strings that determines the traced program for these arguments."""
+    if depth > 60:
+        raise _Unstable("too deep")
+    if isinstance(x, jax.core.Tracer):
+        raise _Unstable("traced")
+    if isinstance(x, (jax.Array, np.ndarray)):
+        return ("array", tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False)))
+    if isinstance(x, np.generic):
+        return ("scalar", type(x).__name__, repr(x))
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+        return (type(x).__name__, repr(x))
+    if isinstance(x, enum.Enum):
+        return ("enum", type(x).__module__, type(x).__qualname__, x.name)
+    if isinstance(x, (tuple, list)):
+        return (type(x).__name__, tuple(_fingerprint(v, depth + 1) for v in x))
+    if isinstance(x, dict):
+        return ("dict", tuple((repr(k), _fingerprint(v, depth + 1)) for k, v in sorted(x.items(), key=repr)))
+    if isinstance(x, functools.partial):
+        return (
+            "partial",
+            _fingerprint(x.func, depth + 1),
+            _fingerprint(x.args, depth + 1),
+            _fingerprint(x.keywords, depth + 1),
+        )
+    if isinstance(x, types.MethodType):
+        return ("method", _fingerprint(x.__self__, depth + 1), _fingerprint(x.__func__, depth + 1))
+    if isinstance(x, (types.FunctionType, types.BuiltinFunctionType, type)):
+        if isinstance(x, types.FunctionType) and x.__closure__:
+            raise _Unstable(f"closure {x.__qualname__}")
+        if isinstance(x, types.FunctionType) and "<" in x.__qualname__:
+            raise _Unstable(f"local function {x.__qualname__}")
+        if not _own(x) and (getattr(x, "__module__", "") or "").split(".")[0] not in _STABLE_MODULES:
+            raise _Unstable(f"foreign callable {getattr(x, '__module__', '?')}.{getattr(x, '__qualname__', '?')}")
+        return ("callable", x.__module__, x.__qualname__)
+    cls = type(x)
+    if dataclasses.is_dataclass(x):  # equinox Modules are dataclasses
+        if not (_own(cls) or (cls.__module__.split(".")[0] in _STABLE_MODULES)):
+            raise _Unstable(f"foreign class {cls.__module__}.{cls.__qualname__}")
+        return (
+            "object",
+            cls.__module__,
+            cls.__qualname__,
+            tuple((f.name, _fingerprint(getattr(x, f.name, None), depth + 1)) for f in dataclasses.fields(x)),
+        )
+    raise _Unstable(f"unknown object {cls.__module__}.{cls.__qualname__}")
+
+
+_STABLE_MODULES = ("diffrax", "equinox", "lineax", "optimistix", "jax", "numpy", "builtins")
+"""Libraries whose version is part of the key: their classes and functions are identified by
+name (their code is fixed for a given version)."""
+
+
+def _folder() -> Optional[str]:
+    from . import _cache
+
+    base = _cache._active
+    if base is None:
+        return None
+    path = os.path.join(base, "exported")
+    if not os.path.isdir(path):
+        try:
+            os.mkdir(path, 0o700)
+            os.chmod(path, 0o700)
+        except FileExistsError:
+            pass
+        except OSError:
+            return None
+    return path if _cache.check_cache_dir(path) is None else None
+
+
+def exported_call(fn: Callable, args: tuple, *, name: str):
+    """`fn(*args)` through an exported program kept on disk, or None when that does not apply
+    (the caller then runs its ordinary compiled path). `fn` must be a module-level jaxnh
+    function; `args` any pytree of arrays and static data."""
+    folder = _folder()
+    if folder is None:
+        return None
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    if not all(isinstance(x, (jax.Array, np.ndarray)) and not isinstance(x, jax.core.Tracer) for x in leaves):
+        # Python numbers and other non-array leaves would be baked in: only array leaves are inputs
+        dynamic = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return None
+    else:
+        dynamic = [True] * len(leaves)
+    try:
+        fp = (_fingerprint(fn), _fingerprint(args))
+    except _Unstable:
+        return None
+    key_text = repr((name, fp, _versions(), jax.default_backend(), _source_digest(), dynamic))
+    key = hashlib.sha256(key_text.encode()).hexdigest()[:40]
+    if key in _REFUSED:
+        return None
+    # committed to one device, so that the jitted call compiles once (jit keys on committedness)
+    inputs = jax.device_put([jax.numpy.asarray(x) for x, d in zip(leaves, dynamic) if d], jax.devices()[0])
+    call = _MEMO.get(key)
+    if call is None:
+        path = os.path.join(folder, f"{name}-{key}.bin")
+        exp = _load(path)
+        if exp is None:
+            static = [None if d else x for x, d in zip(leaves, dynamic)]
+
+            def flat(*xs):
+                it = iter(xs)
+                full = [next(it) if d else s for d, s in zip(dynamic, static)]
+                return fn(*jax.tree_util.tree_unflatten(treedef, full))
+
+            try:
+                exp = jax.export.export(jax.jit(flat))(*(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in inputs))
+                _save(path, exp.serialize())
+            except Exception as e:  # noqa: BLE001 - not exportable (host callbacks, ...): the ordinary path
+                if os.environ.get("JAXNH_DEBUG_EXPORT"):
+                    print("jaxnh export refused:", type(e).__name__, str(e)[:2000])
+                _REFUSED.add(key)
+                return None
+        call = jax.jit(exp.call)
+        _MEMO[key] = call
+    return call(*inputs)
+
+
+def _load(path: str):
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    try:
+        return jax.export.deserialize(bytearray(data))
+    except Exception:  # noqa: BLE001 - a damaged or foreign file: rebuilt and overwritten
+        return None
+
+
+def _save(path: str, data) -> None:
+    folder = os.path.dirname(path)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-", suffix=".bin")
+        with os.fdopen(fd, "wb") as f:
+            f.write(bytes(data))
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only or full disk: the program is used in this process only

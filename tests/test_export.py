@@ -1,0 +1,82 @@
+"""Traced programs kept on disk (`jaxnh._export`): the same answer as the ordinary path, one file
+per program structure, a damaged file rebuilt, and nothing kept for what the key cannot see
+(functions from outside jaxnh, closures, traced calls, the cache turned off)."""
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxnh  # noqa: F401  (64-bit mode)
+from jaxnh import _cache, _export
+from jaxnh.linalg import solve_spd
+
+
+@pytest.fixture
+def folder(tmp_path, monkeypatch):
+    base = tmp_path / "cache"
+    base.mkdir(mode=0o700)
+    monkeypatch.setattr(_cache, "_active", str(base))
+    monkeypatch.setattr(_export, "_MEMO", {})
+    monkeypatch.setattr(_export, "_REFUSED", set())
+    return base / "exported"
+
+
+def spd(n, seed=0):
+    a = np.random.default_rng(seed).normal(size=(n, n))
+    return jnp.asarray(a @ a.T + n * np.eye(n)), jnp.arange(1.0, n + 1.0)
+
+
+def test_round_trip_and_one_file_per_structure(folder, monkeypatch):
+    M, b = spd(4)
+    out = _export.exported_call(solve_spd, (M, b), name="spd")
+    np.testing.assert_allclose(np.asarray(out), np.asarray(solve_spd(M, b)), rtol=1e-14)
+    files = sorted(os.listdir(folder))
+    assert len(files) == 1 and files[0].startswith("spd-")
+    assert oct(os.stat(folder).st_mode & 0o777) == "0o700"
+    # a new process: loaded from the file (no new file), other values through the same program
+    monkeypatch.setattr(_export, "_MEMO", {})
+    M2, b2 = spd(4, seed=1)
+    out2 = _export.exported_call(solve_spd, (M2, b2), name="spd")
+    np.testing.assert_allclose(np.asarray(out2), np.asarray(solve_spd(M2, b2)), rtol=1e-14)
+    assert sorted(os.listdir(folder)) == files
+    # another shape is another program
+    M3, b3 = spd(3)
+    out3 = _export.exported_call(solve_spd, (M3, b3), name="spd")
+    np.testing.assert_allclose(np.asarray(out3), np.asarray(solve_spd(M3, b3)), rtol=1e-14)
+    assert len(os.listdir(folder)) == 2
+
+
+def test_damaged_file_is_rebuilt(folder, monkeypatch):
+    M, b = spd(4)
+    _export.exported_call(solve_spd, (M, b), name="spd")
+    (path,) = [folder / f for f in os.listdir(folder)]
+    path.write_bytes(b"not a program")
+    monkeypatch.setattr(_export, "_MEMO", {})
+    out = _export.exported_call(solve_spd, (M, b), name="spd")
+    np.testing.assert_allclose(np.asarray(out), np.asarray(solve_spd(M, b)), rtol=1e-14)
+    assert path.read_bytes() != b"not a program"
+
+
+def users_function(M, b):
+    return jnp.linalg.solve(M, b)
+
+
+def test_not_kept_when_the_key_cannot_see_the_program(folder, monkeypatch):
+    M, b = spd(3)
+    scale = 2.0
+
+    def closure(M, b):
+        return solve_spd(M, b) * scale
+
+    assert _export.exported_call(users_function, (M, b), name="u") is None  # code outside jaxnh
+    assert _export.exported_call(closure, (M, b), name="c") is None  # captured values
+    assert _export.exported_call(solve_spd, (M, users_function), name="f") is None  # a foreign leaf
+    seen = []
+    jax.jit(lambda M, b: seen.append(_export.exported_call(solve_spd, (M, b), name="t")) or b)(M, b)
+    assert seen == [None]  # traced: the caller's program
+    assert not folder.exists() or os.listdir(folder) == []
+    monkeypatch.setattr(_cache, "_active", None)  # JAXNH_CACHE_DIR=off
+    assert _export.exported_call(solve_spd, (M, b), name="spd") is None
