@@ -9,6 +9,11 @@ with equinox's host-callback checks (`EQX_ON_ERROR` default) and without
 Also `jaxnh fit` on the embedded record, cold and warm.
 
     python benchmarks/cache_effect.py [--repeats 3] [--fit]
+    python -m benchmarks.cache_effect --first-answer [--repeats 5]
+
+`--first-answer` measures only what issue 16's targets name (the variator with
+jaxnh's default settings, cold and warm; `jaxnh fit` cold and warm), writes
+`results/first_answer.json` and is rendered into RESULTS.md by `report.py`.
 
 Prints medians (s) and the number of cache entries written: "cold"/"warm" are
 the wall clock of import + first call, "first call" the part after the import
@@ -92,7 +97,12 @@ def main():
         help="write thresholds to try (s; 'default' = jaxnh's MIN_COMPILE_TIME_SECS)",
     )
     ap.add_argument("--no-off", action="store_true", help="skip the cache-off case")
+    ap.add_argument(
+        "--first-answer", action="store_true", help="only issue 16's cases; write results/first_answer.json"
+    )
     args = ap.parse_args()
+    if args.first_answer:
+        return first_answer(args.repeats)
     cases = [(e, m) for e in args.eqx for m in args.min]
     res = {c: {"cold": [], "warm": [], "cold_call": [], "warm_call": [], "entries": []} for c in cases}
     for _ in range(args.repeats):  # cases interleaved within each repeat, so a change of load hits all alike
@@ -135,6 +145,75 @@ def main():
                 f"jaxnh fit: cold {c:.2f} s, warm {statistics.median(w):.2f} s "
                 f"(entries {entries(os.path.join(d, 'c'))})"
             )
+
+
+def first_answer(repeats: int) -> None:
+    """The variator (import + first simulate) and `jaxnh fit`, cold (empty cache folder) and warm (a
+    second process on the folder the first wrote), `repeats` times each, interleaved."""
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    from benchmarks import common as C
+
+    keys = ("variator_cold", "variator_warm", "variator_warm_call", "fit_cold", "fit_warm")
+    res: dict = {k: [] for k in keys}
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory() as d:
+            env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
+            res["variator_cold"].append(run_user(env)["total"])
+            w = run_user(env)
+            res["variator_warm"].append(w["total"])
+            res["variator_warm_call"].append(w["total"] - w["import"])
+        with tempfile.TemporaryDirectory() as d:
+            env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
+            res["fit_cold"].append(run_fit(env))
+            res["fit_warm"].append(run_fit(env))
+    med = {k: statistics.median(v) for k, v in res.items()}
+    for k in keys:
+        print(f"{k:<20} median {med[k]:6.2f} s   runs {', '.join(f'{x:.2f}' for x in res[k])}")
+    C.save("first_answer", {"machine": C.machine(), "repeats": repeats, "runs": res, "median": med})
+
+
+def section(R: dict | None) -> list:
+    """RESULTS.md lines (called by benchmarks/report.py)."""
+    if not R:
+        return []
+    m = R["median"]
+    rows = [
+        ("A user's variator, import + first simulate, empty cache", 2.5, m["variator_cold"]),
+        ("The same, second process (persistent cache)", 1.0, m["variator_warm"]),
+        ("`jaxnh fit` on the embedded record, empty cache", 8.0, m["fit_cold"]),
+        ("The same, second run (cache and exported program)", 3.0, m["fit_warm"]),
+    ]
+    L = [
+        "## First answers in fresh processes (issue 16)",
+        "",
+        "Wall-clock seconds from the start of a new Python process to the answer, as a user meets them: the "
+        "README's variator (`import jaxnh` and one `simulate`), and the command `jaxnh fit --quiet` on the "
+        "embedded record (a 12-parameter fit of 1501 samples: import, reading, starting guess, the fit, "
+        f"standard errors, output). Medians of {R['repeats']} interleaved runs, each cold run with an empty "
+        "cache folder and each warm run a second process on the folder it wrote; "
+        "`python -m benchmarks.cache_effect --first-answer`.",
+        "",
+        "| case | target | measured (median) | met | runs |",
+        "|---|---:|---:|---|---|",
+    ]
+    for label, goal, value in rows:
+        key = {
+            rows[0][0]: "variator_cold",
+            rows[1][0]: "variator_warm",
+            rows[2][0]: "fit_cold",
+            rows[3][0]: "fit_warm",
+        }[label]
+        runs = ", ".join(f"{x:.2f}" for x in R["runs"][key])
+        met = "yes" if value <= goal else f"no (+{(value / goal - 1) * 100:.0f} %)"
+        L.append(f"| {label} | ≤ {goal:g} s | {value:.2f} s | {met} | {runs} |")
+    L += [
+        "",
+        f"Of the warm variator run, {m['variator_warm_call']:.2f} s is the first `simulate` (tracing the "
+        "program, lowering it and loading its compiled form from the cache); the rest is Python and `import "
+        "jaxnh` (JAX, diffrax and equinox are most of it).",
+        "",
+    ]
+    return L
 
 
 if __name__ == "__main__":

@@ -860,8 +860,9 @@ def build(R) -> tuple[str, dict]:
             ),
             "",
         ]
-    from . import field_size, lean_loop  # issue 16: the integration loop and the size of a vector field
+    from . import cache_effect, field_size, lean_loop  # issue 16: first answers, the loop, the field's size
 
+    L += cache_effect.section(R.get("first_answer"))
     L += lean_loop.section(R.get("lean_loop"))
     L += field_size.section(R.get("field_size"))
     others = [(p, C.HERE / p) for p in ("STABILITY.md", "CALIBRATION.md", "SWEEP.md")]
@@ -889,6 +890,7 @@ def main():
         "compile_time",
         "lean_loop",
         "field_size",
+        "first_answer",
     )
     R = {k: C.load(k) for k in names}
     C.FIGURES.mkdir(parents=True, exist_ok=True)

@@ -32,7 +32,10 @@ OURS = [
     "compile_time",
     "lean_loop",
     "field_size",
+    "cache_effect",
 ]
+ARGS = {"cache_effect": (["--first-answer", "--repeats", "5"], ["--first-answer", "--repeats", "1"])}
+"""(full, quick) arguments of the scripts that do not take plain / --quick."""
 OTHERS = ["stability", "calibration", "sweep_bench", "bicycle_cost"]
 
 
@@ -71,7 +74,8 @@ def main(argv=None):
     for m in OURS:
         if a.only and m not in a.only:
             continue
-        log.append(run(m, ["--quick"] if a.quick else []))
+        full, quick = ARGS.get(m, ([], ["--quick"]))
+        log.append(run(m, quick if a.quick else full))
     if a.all or (a.only and any(m in OTHERS for m in a.only)):
         for m in OTHERS:
             if (a.only and m not in a.only) or not (C.HERE / f"{m}.py").exists():

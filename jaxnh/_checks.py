@@ -12,8 +12,8 @@ reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
 * constraints declared linear in the velocities are (∂²c/∂qd² = 0);
 * the constraint rows are either independent or dependent to rounding, not
   nearly dependent (`nearly_dependent`: no singular value of the
-  row-normalised ∂c/∂qd between `DEPENDENT_BELOW` and `INDEPENDENT_ABOVE`
-  of the largest; in between, which constraints bind is decided by rounding
+  row-normalised ∂c/∂qd between `DEPENDENT_BELOW` eps and `independent_above`
+  of the largest (1e-5 in float64); in between, which constraints bind is decided by rounding
   and a change of a coefficient in its 10th digit can lock or free a motion);
 * qd0 satisfies each constraint k to √eps relative to its velocity scale
   `‖A_k‖·‖qd0 over the coordinates it involves‖ + |c_k(q0, 0, t0)|`
@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from ._status import STATUS
-from .linalg import cholesky
+from .linalg import cholesky, pivot_rtol
 
 
 __all__ = [
@@ -168,8 +168,15 @@ DEPENDENT_BELOW = 1e2
 """Singular values of the row-normalised constraint matrix below DEPENDENT_BELOW · eps of the
 largest are rows that repeat others to rounding (redundant constraints: 'lagrange' drops them)."""
 INDEPENDENT_ABOVE = 1e-5
-"""Singular values above INDEPENDENT_ABOVE of the largest are independent constraints, enforced
-('lagrange' keeps a row whose multiplier pivot, ≈ the square of this ratio, exceeds 1e4 eps)."""
+"""Singular values above INDEPENDENT_ABOVE of the largest (float64; see `independent_above`) are
+independent constraints, enforced."""
+
+
+def independent_above(dtype) -> float:
+    """The ratio above which rows count as independent in `dtype`: INDEPENDENT_ABOVE, or more
+    where 'lagrange' would drop the row (its multiplier pivot, about the square of twice this
+    ratio, below `linalg.pivot_rtol`: 7e-6 in float64, 0.017 in float32), with a margin of 5."""
+    return max(INDEPENDENT_ABOVE, 5 * 0.5 * float(pivot_rtol(dtype)) ** 0.5)
 DISTANCE_FACTOR = 10.0
 """The smallest velocity correction onto the constraints may be this many times the per-row
 allowances (√eps of each row's scale over ‖A_k‖); a well-conditioned set needs a factor ≤ 1/σ_min."""
@@ -191,14 +198,14 @@ def _singular_values(As):
 
 def nearly_dependent(A):
     """Whether the constraint rows are nearly, but not exactly, dependent: a singular value of
-    the row-normalised A in (DEPENDENT_BELOW · eps, INDEPENDENT_ABOVE) × the largest. Rows that
+    the row-normalised A in (DEPENDENT_BELOW · eps, `independent_above`) × the largest. Rows that
     are dependent to rounding (a constraint written twice) and independent rows both pass."""
     if A.shape[0] < 2:
         return jnp.asarray(False)
     eps = jnp.finfo(A.dtype).eps
     S = _singular_values(_normalised_rows(A)[0])
     r = S / jnp.where(S[0] > 0, S[0], 1.0)
-    return jnp.any((r > DEPENDENT_BELOW * eps) & (r < INDEPENDENT_ABOVE))
+    return jnp.any((r > DEPENDENT_BELOW * eps) & (r < independent_above(A.dtype)))
 
 
 def consistent(A, c, qd, a):

@@ -286,7 +286,7 @@ class Mechanism(eqx.Module):
             raise ValueError(
                 "Mechanism `constraints`: the rows of ∂c/∂qd at the initial state are nearly dependent "
                 f"(singular values of the row-normalised matrix {sv}; "
-                "one lies between 1e2 eps and 1e-5 of the largest). Whether the near-repeat binds is decided "
+                "one lies between 1e2 eps and 1e-5 of the largest; 0.09 in float32). Whether the near-repeat binds is decided "
                 "by rounding: write a repeated constraint identically or leave it out, or reformulate the "
                 "constraints so that their rows are well apart."
             )

@@ -53,7 +53,7 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     constraints_nearly_dependent = (
         "The constraint rows are nearly dependent at the initial state: a singular value of "
-        "∂c/∂qd with unit rows lies between 1e2 eps and 1e-5 of the largest. Such rows are "
+        "∂c/∂qd with unit rows lies between 1e2 eps and 1e-5 of the largest (0.09 in float32). Such rows are "
         "neither a constraint repeated (dependent to rounding, which method='lagrange' accepts) "
         "nor independent enough to be enforced reliably: whether the near-repeat binds, and so "
         "whether a motion is locked or free, is decided by rounding. If a constraint repeats "

@@ -113,3 +113,19 @@ def test_nearly_dependent_rows_refused_and_distance_judged():
     # the eager check of a concrete call raises naming the constraints
     with pytest.raises(ValueError, match="nearly dependent"):
         nh.simulate(MECH2, dict(P, d=0.0, e=1e-9), jnp.zeros(3), jnp.array([1.0, 1.0, 0.0]), TS, "lagrange")
+
+
+def test_nearly_dependent_band_follows_the_dtype():
+    """Rows 1 % apart (σ ratio ≈ 0.007) are independent in float64 but nearly dependent in float32,
+    where 'lagrange' would drop one (its multiplier pivot ≈ 2e-4 < 1e4 eps); rows repeated exactly
+    are dependent in both; rows 1e-9 apart are nearly dependent in float64, repeated in float32."""
+    from jaxnh._checks import nearly_dependent
+
+    def rows(d, dtype):
+        return jnp.asarray([[1.0, -1.0, 0.0], [1.0 + d, -1.0, 0.0]], dtype=dtype)
+
+    assert not bool(nearly_dependent(rows(0.01, jnp.float64)))
+    assert bool(nearly_dependent(rows(0.01, jnp.float32)))
+    assert not bool(nearly_dependent(rows(0.0, jnp.float64))) and not bool(nearly_dependent(rows(0.0, jnp.float32)))
+    assert bool(nearly_dependent(rows(1e-9, jnp.float64)))
+    assert not bool(nearly_dependent(rows(1e-9, jnp.float32)))
