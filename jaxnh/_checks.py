@@ -177,6 +177,8 @@ def independent_above(dtype) -> float:
     where 'lagrange' would drop the row (its multiplier pivot, about the square of twice this
     ratio, below `linalg.pivot_rtol`: 7e-6 in float64, 0.017 in float32), with a margin of 5."""
     return max(INDEPENDENT_ABOVE, 5 * 0.5 * float(pivot_rtol(dtype)) ** 0.5)
+
+
 DISTANCE_FACTOR = 10.0
 """The smallest velocity correction onto the constraints may be this many times the per-row
 allowances (√eps of each row's scale over ‖A_k‖); a well-conditioned set needs a factor ≤ 1/σ_min."""

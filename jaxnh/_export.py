@@ -7,14 +7,15 @@ process still traces and lowers its programs first: for the fit's residual Jacob
 5 s of a warm `jaxnh fit`. An exported program is loaded instead and compiled (from the
 persistent cache when it is there).
 
-Only programs built entirely from jaxnh's own code are kept: the key is a fingerprint
-of everything static in the arguments (types, static fields, Python numbers, shapes
-and dtypes of the arrays), the versions of jax, jaxlib, diffrax and equinox, the
-backend, and a digest of jaxnh's source files. A function from outside the jaxnh
-package (a user's kinetic energy, say) could change without changing anything the
-fingerprint sees (a helper it calls), so arguments holding one are never exported:
-such calls run as before. So are calls under a trace, and programs JAX cannot export
-(host callbacks); both fall back to the ordinary compiled path.
+Only programs built entirely from jaxnh's own code are kept: the key is a fingerprint of
+everything static in the arguments (types, static fields, Python numbers, shapes and
+dtypes of the arrays, the values captured by jaxnh's own local functions), the versions
+of jax, jaxlib, diffrax, equinox, lineax and optimistix, the backend, and a digest of
+jaxnh's source files. A function from outside the jaxnh package (a user's kinetic
+energy, say) could change without changing anything the fingerprint sees (a helper it
+calls), so arguments holding one are never exported: such calls run as before. So are
+calls under a trace, and programs JAX cannot export (host callbacks); both fall back to
+the ordinary compiled path.
 
 Files live in `<cache folder>/exported/` (the folder jaxnh's compilation cache uses and
 checks: owned by the user, mode 0700), are written atomically and read only from there.
@@ -95,7 +96,8 @@ def _fingerprint(x, depth: int = 0) -> Any:
     if isinstance(x, (tuple, list)):
         return (type(x).__name__, tuple(_fingerprint(v, depth + 1) for v in x))
     if isinstance(x, dict):
-        return ("dict", tuple((repr(k), _fingerprint(v, depth + 1)) for k, v in sorted(x.items(), key=repr)))
+        items = sorted(x.items(), key=lambda kv: repr(kv[0]))
+        return ("dict", tuple((repr(k), _fingerprint(v, depth + 1)) for k, v in items))
     if isinstance(x, functools.partial):
         return (
             "partial",
@@ -106,12 +108,16 @@ def _fingerprint(x, depth: int = 0) -> Any:
     if isinstance(x, types.MethodType):
         return ("method", _fingerprint(x.__self__, depth + 1), _fingerprint(x.__func__, depth + 1))
     if isinstance(x, (types.FunctionType, types.BuiltinFunctionType, type)):
-        if isinstance(x, types.FunctionType) and x.__closure__:
-            raise _Unstable(f"closure {x.__qualname__}")
-        if isinstance(x, types.FunctionType) and "<" in x.__qualname__:
-            raise _Unstable(f"local function {x.__qualname__}")
-        if not _own(x) and (getattr(x, "__module__", "") or "").split(".")[0] not in _STABLE_MODULES:
+        own = _own(x)
+        if not own and (getattr(x, "__module__", "") or "").split(".")[0] not in _STABLE_MODULES:
             raise _Unstable(f"foreign callable {getattr(x, '__module__', '?')}.{getattr(x, '__qualname__', '?')}")
+        if isinstance(x, types.FunctionType):
+            if not own and (x.__closure__ or "<" in x.__qualname__):
+                raise _Unstable(f"closure or local function {x.__qualname__}")
+            # jaxnh's own local functions: the code is in the source digest, the captured values here
+            cells = tuple(_fingerprint(c.cell_contents, depth + 1) for c in (x.__closure__ or ()))
+            defaults = _fingerprint((x.__defaults__, x.__kwdefaults__), depth + 1)
+            return ("function", x.__module__, x.__qualname__, cells, defaults)
         return ("callable", x.__module__, x.__qualname__)
     cls = type(x)
     if dataclasses.is_dataclass(x):  # equinox Modules are dataclasses
@@ -149,10 +155,16 @@ def _folder() -> Optional[str]:
     return path if _cache.check_cache_dir(path) is None else None
 
 
-def exported_call(fn: Callable, args: tuple, *, name: str):
+ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+"""XLA options for programs evaluated a handful of times (a linearisation): the cheapest
+optimisation settings cut their compile time severalfold and cost nothing noticeable."""
+
+
+def exported_call(fn: Callable, args: tuple, *, name: str, compiler_options: Optional[dict] = None):
     """`fn(*args)` through an exported program kept on disk, or None when that does not apply
     (the caller then runs its ordinary compiled path). `fn` must be a module-level jaxnh
-    function; `args` any pytree of arrays and static data."""
+    function; `args` any pytree of arrays and static data; `compiler_options` are XLA's
+    (e.g. `ONE_SHOT`)."""
     folder = _folder()
     if folder is None:
         return None
@@ -166,9 +178,11 @@ def exported_call(fn: Callable, args: tuple, *, name: str):
         dynamic = [True] * len(leaves)
     try:
         fp = (_fingerprint(fn), _fingerprint(args))
-    except _Unstable:
+    except _Unstable as e:
+        if os.environ.get("JAXNH_DEBUG_EXPORT"):
+            print(f"jaxnh export: {name} not kept: {e}")
         return None
-    key_text = repr((name, fp, _versions(), jax.default_backend(), _source_digest(), dynamic))
+    key_text = repr((name, fp, _versions(), jax.default_backend(), _source_digest(), dynamic, compiler_options))
     key = hashlib.sha256(key_text.encode()).hexdigest()[:40]
     if key in _REFUSED:
         return None
@@ -195,6 +209,8 @@ def exported_call(fn: Callable, args: tuple, *, name: str):
                 _REFUSED.add(key)
                 return None
         call = jax.jit(exp.call)
+        if compiler_options:
+            call = call.lower(*inputs).compile(compiler_options)
         _MEMO[key] = call
     return call(*inputs)
 

@@ -43,8 +43,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._checks import constraints_affine
+from ._export import exported_call, ONE_SHOT
 from ._mechanism import Mechanism
-from ._status import is_traced
+from ._status import is_traced, under_jit
 from .equations.base import as_data, as_float, as_time
 from .equations.split import (
     best_partition,
@@ -177,9 +178,17 @@ def linearize(
                 f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); "
                 f"got {accelerations.shape}"
             )
-    A, mass, damping, stiffness, rates, x0 = _linearize(
-        mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations
-    )
+    args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations)
+    # jaxnh's own models (the bicycle): the traced program is kept on disk (jaxnh._export)
+    out = exported_call(_linearize_traced, args, name="linearize", compiler_options=ONE_SHOT)
+    if out is None:
+        # inside the caller's jit: inlined (a nested jit only adds tracing); under vmap/grad: jitted
+        # without compiler options (JAX takes them only on a top-level call)
+        if under_jit():
+            out = _linearize_traced(*args)
+        else:
+            out = (_linearize_transformed if is_traced(*args[:5]) else _linearize)(*args)
+    A, mass, damping, stiffness, rates, x0 = out
     names = mech.coordinate_names(s)
     dnames = tuple("d" + names[i] for i in speeds) if speeds is not None else tuple(f"dv{j}" for j in range(s - m))
     states = tuple(names[i] for i in coordinates) + dnames
@@ -201,8 +210,7 @@ def _quality(mech, q, qd, t, params, part, k):
     return partition_quality(mech, q, qd, t, params, part, k)[0]
 
 
-@eqx.filter_jit
-def _linearize(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations):
+def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations):
     """The compiled part of `linearize` (once per mechanism, shapes and options)."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
@@ -256,6 +264,12 @@ def _linearize(mech, params, q, qd, t, coordinates, speeds, method, complete, ac
         affine = constraints_affine(mech, q, qd, t, params)
         out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
     return out
+
+
+# evaluated a handful of times: XLA's cheapest settings (equinox's type hints of filter_jit leave
+# out the keyword arguments it passes on to jax.jit)
+_linearize = eqx.filter_jit(_linearize_traced, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+_linearize_transformed = eqx.filter_jit(_linearize_traced)
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):

@@ -286,9 +286,9 @@ class Mechanism(eqx.Module):
             raise ValueError(
                 "Mechanism `constraints`: the rows of ∂c/∂qd at the initial state are nearly dependent "
                 f"(singular values of the row-normalised matrix {sv}; "
-                "one lies between 1e2 eps and 1e-5 of the largest; 0.09 in float32). Whether the near-repeat binds is decided "
-                "by rounding: write a repeated constraint identically or leave it out, or reformulate the "
-                "constraints so that their rows are well apart."
+                "one lies between 1e2 eps and 1e-5 of the largest; 0.09 in float32). Whether the near-repeat "
+                "binds is decided by rounding: write a repeated constraint identically or leave it out, or "
+                "reformulate the constraints so that their rows are well apart."
             )
         allowed = np.asarray(consistency_tolerance(A_j, qd_j, c_j - A_j @ qd_j))
         if constraint_rtol is None and not bool(consistent(A_j, c_j, qd_j, c_j - A_j @ qd_j)):

@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import ONE_SHOT as _ONE_SHOT
 from .._holonomic import HolonomicMechanism
 from .._linearize import Linearization, linearize
 from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
@@ -340,7 +341,7 @@ def linear_lean_steer(v, params=None, method: str = "lagrange"):
 
 # One-shot linearisations are evaluated a handful of times: XLA's cheapest
 # optimisation settings halve their compile time and cost nothing noticeable.
-ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+ONE_SHOT = _ONE_SHOT
 
 
 def _linearized_speeds_uncompiled(speeds, params, method):
