@@ -402,3 +402,43 @@ def test_savgol_derivative_matches_scipy():
             ours = np.asarray(savgol_derivative(y, window, 3, deriv, dt))
             ref = np.asarray(savgol_filter(y, window, 3, deriv=deriv, delta=dt))
             np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-10 * np.max(np.abs(ref)))
+
+
+def test_host_arithmetic_in_numpy_matches_the_compiled_one():
+    """The host fit runs the Levenberg–Marquardt update and the statistics in NumPy (nothing to
+    compile); the compiled, vmappable path runs the same code in jax.numpy. Same numbers, to rounding,
+    on a linear problem r(θ) = Aθ − b whose answer is known (least squares), with a rank-deficient
+    Jacobian for the statistics (an undetermined direction: infinite standard errors)."""
+    from jaxnh.identify.problem import _lm_limits, _lm_start, _lm_update, statistics_host
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(40, 4)) * np.array([1.0, 10.0, 0.1, 3.0])
+    b = rng.normal(size=40)
+
+    def run(xp):
+        st = _lm_start(xp.asarray(np.zeros(4)), 40, xp=xp)
+        lim = _lm_limits(1e-12, 1e-6, 1e-12, 50, np.float64, xp=xp)
+        for _ in range(50):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                st = _lm_update(st, A @ np.asarray(st.trial) - b, xp.asarray(A), lim, xp=xp)
+            if bool(st.done):
+                break
+        return st
+
+    s_np, s_j = run(np), run(jnp)
+    assert int(s_np.code) == int(s_j.code) == 0 and int(s_np.k) == int(s_j.k)
+    np.testing.assert_allclose(np.asarray(s_np.theta), np.asarray(s_j.theta), rtol=1e-12)
+    # it stops when the remaining Gauss–Newton step is below gn_tol = 1e-6 standard errors
+    exact = np.linalg.lstsq(A, b, rcond=None)[0]
+    std = statistics_host(A, A @ exact - b)["std"]
+    assert np.max(np.abs(np.asarray(s_np.theta) - exact) / std) < 1e-5
+
+    J = np.concatenate([A, A[:, :1] * 2.0], axis=1)  # column 5 = 2 × column 1
+    host, comp = statistics_host(J, b), statistics(jnp.asarray(J), jnp.asarray(b))
+    assert int(host["rank"]) == int(comp["rank"]) == 4
+    assert np.isinf(host["std"][0]) and np.isinf(host["std"][4]) and np.all(np.isfinite(host["std"][1:4]))
+    for key in ("std", "s2", "gn_step", "cov", "sv"):
+        h, c = np.asarray(host[key]), np.asarray(comp[key])
+        fin = np.isfinite(h)
+        assert np.array_equal(fin, np.isfinite(c)), key
+        np.testing.assert_allclose(h[fin], c[fin], rtol=1e-9, atol=1e-12 * np.max(np.abs(h[fin]), initial=1.0), err_msg=key)

@@ -52,7 +52,7 @@ from ._fit import _ProfileAt, estimate_band, prepare
 from .data import Record
 from .diagnostics import analyse, Identifiability
 from .parameters import resolve
-from .problem import Problem, statistics
+from .problem import Problem, statistics_host
 
 
 __all__ = [
@@ -421,11 +421,11 @@ def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Predicti
     J = np.asarray(J)
     N, p = J.shape
     # statistics() scales the covariance by s² = |r|²/(N − rank); a residual of length √(N − rank) makes s² = 1
-    st0 = statistics(jnp.asarray(J), jnp.zeros(N), rank_tol=rank_tol)
+    st0 = statistics_host(J, np.zeros(N), rank_tol=rank_tol)
     dof = max(N - int(st0["rank"]), 1)
     r = np.zeros(N)
     r[0] = math.sqrt(dof)
-    stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
+    stats = statistics_host(J, r, rank_tol=rank_tol)
     par = exp.problem.par
     log = np.concatenate([par.log_mask(), np.zeros(p - par.size, bool)])
     theta = np.asarray(exp.theta())

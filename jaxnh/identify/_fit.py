@@ -9,6 +9,7 @@ combinations the data cannot determine.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 import warnings
@@ -20,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import ONE_SHOT
 from .._mechanism import Mechanism
 from .._sensitivity import FORWARD_MAX_PARAMETERS
 from ..equations.split import choose_independent
@@ -33,7 +35,7 @@ from .problem import (
     Observations,
     Problem,
     solve_least_squares_host,
-    statistics,
+    statistics_host,
     value_and_jacobian,
 )
 
@@ -230,7 +232,7 @@ class _ProfileAt(eqx.Module):
         return resolve(params, self.name)(t)
 
 
-@eqx.filter_jit
+@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
 def _band_jacobian(par, theta, ts, fn):
     def g(th):
         p = par.unpack(th)
@@ -254,7 +256,7 @@ def _local_rates(t, y, i0, window=RATE_WINDOW):
     return coef[0], coef[1]
 
 
-@eqx.filter_jit
+@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
 def _velocity_map(problem: Problem, q, t, params):
     """b, B with observed velocities = B v + b for independent velocities v."""
 
@@ -263,6 +265,13 @@ def _velocity_map(problem: Problem, q, t, params):
 
     v0 = jnp.zeros(len(problem.independent), q.dtype)
     return f(v0), jax.jacfwd(f)(v0)
+
+
+@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+def _estimate_state(problem: Problem, theta, t0):
+    """The params pytree at θ and the initial state (q0, qd0) it implies (one small program)."""
+    params = problem.par.unpack(theta[: problem.par.size])
+    return (params, *problem.initial_state(theta, t0, params))
 
 
 @eqx.filter_jit
@@ -415,7 +424,7 @@ def _check_tolerance(name: str, value, positive: bool):
 
 def _noise(noise, observe, y):
     if noise is None:
-        sigma = np.asarray(noise_level(jnp.asarray(y)))
+        sigma = np.asarray(noise_level(np.asarray(y)))
         if not np.all(sigma > 0):
             zero = [c for c, s in zip(observe, sigma) if not s > 0]
             raise ValueError(
@@ -810,7 +819,7 @@ def _result(
     elapsed,
     noise_estimated: bool = False,
 ) -> FitResult:
-    stats = jax.tree_util.tree_map(np.asarray, statistics(jnp.asarray(J), jnp.asarray(r), rank_tol=rank_tol))
+    stats = statistics_host(J, r, rank_tol=rank_tol)
     par = problem.par
     labels = problem.labels(names)
     log = np.concatenate([par.log_mask(), np.zeros(problem.size - par.size, bool)])
@@ -822,8 +831,8 @@ def _result(
     covariance = cov_theta * np.outer(D, D)
     ident = analyse(stats, labels, log, rank_tol)
     null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
-    params = par.unpack(jnp.asarray(theta[: par.size]))
-    q0, qd0 = (np.asarray(x) for x in problem.initial_state(jnp.asarray(theta), obs.t[0], params))
+    params, q0, qd0 = _estimate_state(problem, jnp.asarray(theta), jnp.asarray(obs.t[0]))
+    q0, qd0 = np.asarray(q0), np.asarray(qd0)
     n, k = obs.y.shape
     sigma = np.asarray(obs.sigma)
     weighted = np.asarray(r)[: n * k].reshape(n, k)

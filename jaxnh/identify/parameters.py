@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..profiles import trainable
+from ._host import array_module
 
 
 __all__ = ["Parametrisation", "resolve"]
@@ -126,11 +127,12 @@ class Parametrisation(eqx.Module):
     def pack(self, params=None):
         """θ (size,) from a params pytree (default: the starting params)."""
         params = self.params if params is None else params
+        xp = array_module(params)  # NumPy for concrete params: nothing to compile
         parts = []
         for name, pos in zip(self.names, self.positive):
-            v = jnp.concatenate([jnp.ravel(x) for x in self._leaves(resolve(params, name), name)])
-            parts.append(jnp.log(v) if pos else v)
-        return jnp.concatenate(parts)
+            v = xp.concatenate([xp.ravel(x) for x in self._leaves(resolve(params, name), name)])
+            parts.append(xp.log(v) if pos else v)
+        return xp.concatenate(parts)
 
     def natural(self, theta):
         """The free values themselves (exp of the log entries), (size,)."""

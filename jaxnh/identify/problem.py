@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import exported_call
+from .._export import exported_call, ONE_SHOT
 from .._mechanism import Mechanism
 from .._sensitivity import ForwardSensitivity
 from .._simulate import simulate
@@ -286,7 +286,7 @@ def value_and_jacobian(problem: Problem, theta, data: Observations):
     Compiled once per problem structure. For problems built from jaxnh's own models
     (the CLI's variator) the traced program is also kept on disk (`jaxnh._export`), so
     a second process skips tracing it."""
-    out = exported_call(_jacfwd, (problem, theta, data), name="value_and_jacobian")
+    out = exported_call(_jacfwd, (problem, theta, data), name="value_and_jacobian", compiler_options=ONE_SHOT)
     return _value_and_jacobian(problem, theta, data) if out is None else out
 
 
@@ -378,83 +378,86 @@ class _LMState(eqx.Module):
     code: jax.Array
 
 
-def _lm_update(state: _LMState, r_c, J_c, limits) -> _LMState:
-    """One Levenberg–Marquardt iteration, given the residuals and Jacobian at `state.trial`."""
+def _lm_update(state: _LMState, r_c, J_c, limits, xp=jnp) -> _LMState:
+    """One Levenberg–Marquardt iteration, given the residuals and Jacobian at `state.trial`.
+
+    `xp` is the array module: `jax.numpy` in the compiled loop, `numpy` in the host loop
+    (the same arithmetic, without compiling a program for a few small operations)."""
     tol, gn_tol, step_rtol, max_steps = limits
-    loss_c = 0.5 * jnp.dot(r_c, r_c)
-    ok_c = jnp.all(jnp.isfinite(J_c)) & jnp.all(r_c != FAILED_RESIDUAL) & jnp.isfinite(loss_c)
+    loss_c = 0.5 * xp.dot(r_c, r_c)
+    ok_c = xp.all(xp.isfinite(J_c)) & xp.all(r_c != FAILED_RESIDUAL) & xp.isfinite(loss_c)
     first = state.k == 0
-    rho = (state.loss - loss_c) / jnp.where(state.pred > 0, state.pred, jnp.inf)
+    rho = (state.loss - loss_c) / xp.where(state.pred > 0, state.pred, xp.inf)
     take = first | (ok_c & (rho > LM_ACCEPT))
     failed_start = first & ~ok_c
-    theta = jnp.where(take, state.trial, state.theta)
-    r = jnp.where(take, r_c, state.r)
-    J = jnp.where(take, J_c, state.J)
-    loss = jnp.where(take, loss_c, state.loss)
-    colnorm = jnp.linalg.norm(J, axis=0)
-    D = jnp.where(first, jnp.where(colnorm > 0, colnorm, 1.0), jnp.maximum(state.D, colnorm))
-    mu = jnp.where(
+    theta = xp.where(take, state.trial, state.theta)
+    r = xp.where(take, r_c, state.r)
+    J = xp.where(take, J_c, state.J)
+    loss = xp.where(take, loss_c, state.loss)
+    colnorm = xp.linalg.norm(J, axis=0)
+    D = xp.where(first, xp.where(colnorm > 0, colnorm, 1.0), xp.maximum(state.D, colnorm))
+    mu = xp.where(
         first,
         LM_TAU,
-        jnp.where(take, state.mu * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), state.mu * state.nu),
+        xp.where(take, state.mu * xp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), state.mu * state.nu),
     )
-    nu = jnp.where(take, 2.0, 2.0 * state.nu)
+    nu = xp.where(take, 2.0, 2.0 * state.nu)
     # the linear model at the accepted point, in scaled unknowns
-    U, sv, Vt = jnp.linalg.svd(J / D, full_matrices=False)
+    U, sv, Vt = xp.linalg.svd(J / D, full_matrices=False)
     ur = U.T @ r
     keep = sv > 1e-12 * sv[0]
     n, p = J.shape
-    s2 = jnp.dot(r, r) / max(n - p, 1)
-    pr = jnp.where(keep, ur, 0.0)
-    gn = -(Vt.T @ (pr / jnp.where(keep, sv, 1.0))) / D
-    small_in_std = jnp.linalg.norm(pr) <= gn_tol * jnp.sqrt(s2)
-    small_change = jnp.max(jnp.abs(gn) / (1.0 + jnp.abs(theta))) <= step_rtol
+    s2 = xp.dot(r, r) / max(n - p, 1)
+    pr = xp.where(keep, ur, 0.0)
+    gn = -(Vt.T @ (pr / xp.where(keep, sv, 1.0))) / D
+    small_in_std = xp.linalg.norm(pr) <= gn_tol * xp.sqrt(s2)
+    small_change = xp.max(xp.abs(gn) / (1.0 + xp.abs(theta))) <= step_rtol
     cauchy = (
         take
         & ~first
-        & (jnp.abs(state.loss - loss_c) <= tol * loss_c)
-        & (jnp.max(jnp.abs(state.trial - state.theta) / (1.0 + jnp.abs(theta))) <= tol)
+        & (xp.abs(state.loss - loss_c) <= tol * loss_c)
+        & (xp.max(xp.abs(state.trial - state.theta) / (1.0 + xp.abs(theta))) <= tol)
     )
     converged = take & ok_c & (small_in_std | small_change | cauchy)
     stalled = mu > LM_MAX_DAMPING
     k = state.k + 1
-    code = jnp.where(failed_start, 3, jnp.where(converged, 0, jnp.where(stalled, 2, jnp.where(k >= max_steps, 1, 0))))
+    code = xp.where(failed_start, 3, xp.where(converged, 0, xp.where(stalled, 2, xp.where(k >= max_steps, 1, 0))))
     done = failed_start | converged | stalled | (k >= max_steps)
     # the next trial: δ̃ = −V diag(s / (s² + μ)) Uᵀr, δ = δ̃ / D
     filt = sv / (sv**2 + mu)
     delta = -(Vt.T @ (filt * ur)) / D
-    pred = 0.5 * jnp.sum(ur**2 * (1.0 - (mu / (sv**2 + mu)) ** 2))
-    new = _LMState(k, theta, r, J, loss, D, mu, nu, theta + delta, pred, done, code.astype(jnp.int32))
+    pred = 0.5 * xp.sum(ur**2 * (1.0 - (mu / (sv**2 + mu)) ** 2))
+    new = _LMState(k, theta, r, J, loss, D, mu, nu, theta + delta, pred, done, code.astype(xp.int32))
     # under vmap the loop runs until every member is done: finished members keep their state
-    return jax.tree_util.tree_map(lambda a, b: jnp.where(state.done, a, b), state, new)
+    return jax.tree_util.tree_map(lambda a, b: xp.where(state.done, a, b), state, new)
 
 
-def _lm_start(theta0, n_residuals: int) -> _LMState:
+def _lm_start(theta0, n_residuals: int, xp=jnp) -> _LMState:
     dtype = theta0.dtype
     p, N = theta0.shape[0], n_residuals
     return _LMState(
-        k=jnp.asarray(0),
+        k=xp.asarray(0),
         theta=theta0,
-        r=jnp.zeros(N, dtype),
-        J=jnp.zeros((N, p), dtype),
-        loss=jnp.asarray(jnp.inf, dtype),
-        D=jnp.ones(p, dtype),
-        mu=jnp.asarray(LM_TAU, dtype),
-        nu=jnp.asarray(2.0, dtype),
+        r=xp.zeros(N, dtype),
+        J=xp.zeros((N, p), dtype),
+        loss=xp.asarray(xp.inf, dtype),
+        D=xp.ones(p, dtype),
+        mu=xp.asarray(LM_TAU, dtype),
+        nu=xp.asarray(2.0, dtype),
         trial=theta0,
-        pred=jnp.asarray(0.0, dtype),
-        done=jnp.asarray(False),
-        code=jnp.asarray(0, jnp.int32),
+        pred=xp.asarray(0.0, dtype),
+        done=xp.asarray(False),
+        code=xp.asarray(0, xp.int32),
     )
 
 
-def _lm_limits(tol, gn_tol, step_rtol, max_steps, dtype):
+def _lm_limits(tol, gn_tol, step_rtol, max_steps, dtype, xp=jnp):
     # the tolerances and the limit as data: other values reuse the compiled programs
     return (
-        jnp.asarray(tol, dtype),
-        jnp.asarray(gn_tol, dtype),
-        jnp.asarray(step_rtol, dtype),
-        jnp.asarray(max_steps),
+        xp.asarray(tol, dtype),
+        xp.asarray(gn_tol, dtype),
+        xp.asarray(step_rtol, dtype),
+        xp.asarray(max_steps),
     )
 
 
@@ -517,9 +520,6 @@ def _levenberg_marquardt(problem: Problem, theta0, data: Observations, limits, p
     return _lm_out(out)
 
 
-_lm_update_jit = jax.jit(_lm_update)
-
-
 def solve_least_squares_host(
     problem: Problem,
     theta0,
@@ -533,21 +533,23 @@ def solve_least_squares_host(
     """`solve_least_squares` for one record, iterated from Python.
 
     The same iteration and the same results; the loop runs on the host, so the
-    only large compiled program is `value_and_jacobian` (shared with every
-    other caller) instead of a loop around it, which XLA took about twice as
-    long to compile (benchmarks/FIT_COST.md). Not for `jax.vmap`/`jax.jit`.
+    only compiled program is `value_and_jacobian` (shared with every other
+    caller) instead of a loop around it, which XLA took about twice as long
+    to compile (benchmarks/FIT_COST.md); the iteration's own arithmetic runs
+    in NumPy. Not for `jax.vmap`/`jax.jit`.
     """
-    theta0 = jnp.asarray(theta0)
-    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype)
-    r_c, J_c = value_and_jacobian(problem, theta0, data)
-    state = _lm_start(theta0, r_c.shape[0])
+    theta0 = np.asarray(theta0)
+    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype, xp=np)
+    r_c, J_c = (np.asarray(x) for x in value_and_jacobian(problem, jnp.asarray(theta0), data))
+    state = _lm_start(theta0, r_c.shape[0], xp=np)
     while True:
         if progress is not None:
-            progress.show(int(state.k), 0.5 * float(jnp.dot(r_c, r_c)), float(state.loss), float(state.mu), state.trial)
-        state = _lm_update_jit(state, r_c, J_c, limits)
+            progress.show(int(state.k), 0.5 * float(np.dot(r_c, r_c)), float(state.loss), float(state.mu), state.trial)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # as jax.numpy: inf/nan, no warning
+            state = _lm_update(state, r_c, J_c, limits, xp=np)
         if bool(state.done):
             return _lm_out(state)
-        r_c, J_c = value_and_jacobian(problem, state.trial, data)
+        r_c, J_c = (np.asarray(x) for x in value_and_jacobian(problem, jnp.asarray(state.trial), data))
 
 
 def lm_message(code: int, max_steps: int) -> str:
@@ -567,7 +569,8 @@ def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
     dropped from the covariance (pseudo-inverse) and every entry of θ with a
     component above `leak_tol` along them gets an infinite standard error.
     The covariance is scaled by the residual variance
-    `s² = Σ r² / (N − rank)`. Pure JAX (vmaps).
+    `s² = Σ r² / (N − rank)`. Pure JAX (vmaps); `statistics_host` is the
+    same in NumPy, for one fit on the host.
 
     Returns a dict: `cov` (p, p), `std` (p,), `s2`, `dof`, `sv` (relative
     singular values, descending), `Vt` (right singular vectors, rows, in
@@ -575,23 +578,32 @@ def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
     the remaining Gauss–Newton step in standard errors), `gn_delta` (that
     step in θ, (p,)).
     """
+    return _statistics(J, r, rank_tol, leak_tol, jnp)
+
+
+def statistics_host(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4) -> dict:
+    """`statistics` in NumPy (no program to compile; NumPy arrays in and out)."""
+    return _statistics(np.asarray(J), np.asarray(r), rank_tol, leak_tol, np)
+
+
+def _statistics(J, r, rank_tol, leak_tol, xp):
     N, p = J.shape
-    c = jnp.linalg.norm(J, axis=0)
-    c_safe = jnp.where(c > 0, c, 1.0)
-    U, s, Vt = jnp.linalg.svd(J / c_safe, full_matrices=False)
-    rel = s / jnp.where(s[0] > 0, s[0], 1.0)
+    c = xp.linalg.norm(J, axis=0)
+    c_safe = xp.where(c > 0, c, 1.0)
+    U, s, Vt = xp.linalg.svd(J / c_safe, full_matrices=False)
+    rel = s / xp.where(s[0] > 0, s[0], 1.0)
     keep = (rel > rank_tol) & (s > 0)
-    rank = jnp.sum(keep)
-    dof = jnp.maximum(N - rank, 1)
-    s2 = jnp.dot(r, r) / dof
-    inv = jnp.where(keep, 1.0 / jnp.where(keep, s, 1.0) ** 2, 0.0)
-    cov = s2 * (Vt.T * inv) @ Vt / jnp.outer(c_safe, c_safe)
-    leak = jnp.sum(jnp.where(keep[:, None], 0.0, Vt**2), axis=0)
+    rank = xp.sum(keep)
+    dof = xp.maximum(N - rank, 1)
+    s2 = xp.dot(r, r) / dof
+    inv = xp.where(keep, 1.0 / xp.where(keep, s, 1.0) ** 2, 0.0)
+    cov = s2 * (Vt.T * inv) @ Vt / xp.outer(c_safe, c_safe)
+    leak = xp.sum(xp.where(keep[:, None], 0.0, Vt**2), axis=0)
     undetermined = (leak > leak_tol) | (c == 0)
-    std = jnp.where(undetermined, jnp.inf, jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0)))
-    Pr = jnp.where(keep, U.T @ r, 0.0)
-    gn_step = jnp.linalg.norm(Pr) / jnp.sqrt(jnp.maximum(s2, jnp.finfo(r.dtype).tiny))
-    delta = -(Vt.T @ (Pr / jnp.where(keep, s, 1.0))) / c_safe
+    std = xp.where(undetermined, xp.inf, xp.sqrt(xp.maximum(xp.diag(cov), 0.0)))
+    Pr = xp.where(keep, U.T @ r, 0.0)
+    gn_step = xp.linalg.norm(Pr) / xp.sqrt(xp.maximum(s2, xp.finfo(r.dtype).tiny))
+    delta = -(Vt.T @ (Pr / xp.where(keep, s, 1.0))) / c_safe
     return {
         "cov": cov,
         "std": std,

@@ -13,12 +13,14 @@ is linear in J1 and J2, so ordinary least squares gives them.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._export import ONE_SHOT
 from ..models import variator as V
 from ..profiles import CubicSpline, Sampled
 from ._fit import fit, FitResult
@@ -50,18 +52,20 @@ def ratio_knots(record: Record, n_knots: int = DEFAULT_KNOTS) -> np.ndarray:
 
 
 def _spline_basis(knots, t):
-    """Matrix (len(t), len(knots)) of the natural spline's values: it is linear in the knot values."""
-    return np.asarray(_basis(jnp.asarray(knots, dtype=float), jnp.asarray(t, dtype=float)))
+    """Matrices (len(t), len(knots)) of the natural spline's values and time derivatives
+    (1/s) at t: both are linear in the knot values."""
+    B, dB = _basis(jnp.asarray(knots, dtype=float), jnp.asarray(t, dtype=float))
+    return np.asarray(B), np.asarray(dB)
 
 
-@jax.jit
+@functools.partial(jax.jit, compiler_options=ONE_SHOT)
 def _basis(knots, t):
-    return jax.vmap(lambda e: jax.vmap(CubicSpline(knots, e))(t))(jnp.eye(knots.shape[0], dtype=t.dtype)).T
+    def at(e):
+        s = CubicSpline(knots, e)
+        return jax.vmap(s)(t), jax.vmap(s.derivative)(t)
 
-
-@jax.jit
-def _ratio_and_rate(U21, t):
-    return jax.vmap(U21)(t), jax.vmap(U21.derivative)(t)
+    B, dB = jax.vmap(at)(jnp.eye(knots.shape[0], dtype=t.dtype))
+    return B.T, dB.T
 
 
 def savgol_derivative(y, window: int, order: int, deriv: int, dt: float) -> np.ndarray:
@@ -113,7 +117,7 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
         for c in observe
         if c in record.channels
     }
-    B = _spline_basis(knots, t)
+    B, dB = _spline_basis(knots, t)
     if "phi1" in d and "phi2" in d:
         w1, w2 = d["phi1"][0], d["phi2"][0]
         ok = np.abs(w1) > 0.2 * np.max(np.abs(w1))
@@ -124,7 +128,7 @@ def starting_guess(record: Record, knots, observe=("phi1", "phi2")):
     else:
         u = np.ones(len(knots))
     U21 = CubicSpline(knots, u)
-    U, dU = (np.asarray(x) for x in _ratio_and_rate(U21, jnp.asarray(t, dtype=float)))
+    U, dU = B @ u, dB @ u
     if "phi1" in d:
         w, a = d["phi1"]
     else:
