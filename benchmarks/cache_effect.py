@@ -87,7 +87,11 @@ def run_user(env):
 def run_fit(env):
     t0 = time.perf_counter()
     out = subprocess.run(
-        [sys.executable, "-m", "jaxnh.cli", "fit", "--quiet"], capture_output=True, text=True, timeout=900, **_as_a_user(env)
+        [sys.executable, "-m", "jaxnh.cli", "fit", "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        **_as_a_user(env),
     )
     el = time.perf_counter() - t0
     if out.returncode not in (0, 1):

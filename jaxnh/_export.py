@@ -31,8 +31,9 @@ import hashlib
 import os
 import tempfile
 import types
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, TypeVar
 
+import equinox as eqx
 import jax
 import jax.core
 import numpy as np
@@ -158,6 +159,16 @@ def _folder() -> Optional[str]:
 ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
 """XLA options for programs evaluated a handful of times (a linearisation): the cheapest
 optimisation settings cut their compile time severalfold and cost nothing noticeable."""
+
+_F = TypeVar("_F", bound=Callable)
+
+
+def one_shot_jit(fn: _F) -> _F:
+    """`equinox.filter_jit` with `ONE_SHOT`: for jaxnh's host-side helpers that run a few times
+    per call (a fit's starting guess, its error bands). Inside a caller's `jit` it is inlined
+    like any nested jit, so the options then do not apply."""
+    # (equinox's type hints of filter_jit leave out the keyword arguments it passes on to jax.jit)
+    return eqx.filter_jit(fn, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue,reportReturnType]
 
 
 def exported_call(fn: Callable, args: tuple, *, name: str, compiler_options: Optional[dict] = None):

@@ -441,4 +441,6 @@ def test_host_arithmetic_in_numpy_matches_the_compiled_one():
         h, c = np.asarray(host[key]), np.asarray(comp[key])
         fin = np.isfinite(h)
         assert np.array_equal(fin, np.isfinite(c)), key
-        np.testing.assert_allclose(h[fin], c[fin], rtol=1e-9, atol=1e-12 * np.max(np.abs(h[fin]), initial=1.0), err_msg=key)
+        np.testing.assert_allclose(
+            h[fin], c[fin], rtol=1e-9, atol=1e-12 * np.max(np.abs(h[fin]), initial=1.0), err_msg=key
+        )

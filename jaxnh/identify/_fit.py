@@ -9,7 +9,6 @@ combinations the data cannot determine.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import time
 import warnings
@@ -21,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import ONE_SHOT
+from .._export import one_shot_jit
 from .._mechanism import Mechanism
 from .._sensitivity import FORWARD_MAX_PARAMETERS
 from ..equations.split import choose_independent
@@ -232,7 +231,7 @@ class _ProfileAt(eqx.Module):
         return resolve(params, self.name)(t)
 
 
-@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+@one_shot_jit
 def _band_jacobian(par, theta, ts, fn):
     def g(th):
         p = par.unpack(th)
@@ -256,7 +255,7 @@ def _local_rates(t, y, i0, window=RATE_WINDOW):
     return coef[0], coef[1]
 
 
-@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+@one_shot_jit
 def _velocity_map(problem: Problem, q, t, params):
     """b, B with observed velocities = B v + b for independent velocities v."""
 
@@ -267,7 +266,7 @@ def _velocity_map(problem: Problem, q, t, params):
     return f(v0), jax.jacfwd(f)(v0)
 
 
-@functools.partial(eqx.filter_jit, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+@one_shot_jit
 def _estimate_state(problem: Problem, theta, t0):
     """The params pytree at θ and the initial state (q0, qd0) it implies (one small program)."""
     params = problem.par.unpack(theta[: problem.par.size])

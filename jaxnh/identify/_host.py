@@ -9,12 +9,12 @@ the inputs) it must stay `jax.numpy`.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._status import is_traced
 
 
 def array_module(*trees):
     """`jax.numpy` if any leaf of `trees` is a JAX tracer (inside jit, vmap, grad), else `numpy`."""
-    leaves = jax.tree_util.tree_leaves(trees)
-    return jnp if any(isinstance(x, jax.core.Tracer) for x in leaves) else np
+    return jnp if is_traced(*trees) else np

@@ -13,14 +13,13 @@ is linear in J1 and J2, so ordinary least squares gives them.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import ONE_SHOT
+from .._export import one_shot_jit
 from ..models import variator as V
 from ..profiles import CubicSpline, Sampled
 from ._fit import fit, FitResult
@@ -58,7 +57,7 @@ def _spline_basis(knots, t):
     return np.asarray(B), np.asarray(dB)
 
 
-@functools.partial(jax.jit, compiler_options=ONE_SHOT)
+@one_shot_jit
 def _basis(knots, t):
     def at(e):
         s = CubicSpline(knots, e)
