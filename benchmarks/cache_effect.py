@@ -63,6 +63,34 @@ print(json.dumps({"import": t_import, "total": t_total, "cache": path, "q": floa
 """
 
 
+BIKE = r"""
+import time, json
+t0 = time.perf_counter()
+import numpy as np
+import jax
+import jaxnh
+from jaxnh.models import bicycle
+A = bicycle.linear_lean_steer(5.0)
+jax.block_until_ready(A)
+t_first = time.perf_counter() - t0
+further = []
+for v in np.linspace(5.1, 6.0, 10):
+    t = time.perf_counter()
+    jax.block_until_ready(bicycle.linear_lean_steer(float(v)))
+    further.append(time.perf_counter() - t)
+eig = np.sort_complex(np.linalg.eigvals(np.asarray(A)))
+err = float(np.abs(eig - np.sort_complex(np.array(bicycle.PUBLISHED["eigenvalues_v5"]))).max())
+print(json.dumps({"total": t_first, "further": float(np.median(further)), "eig_error": err}))
+"""
+
+
+def run_bike(env):
+    out = subprocess.run([sys.executable, "-c", BIKE], capture_output=True, text=True, timeout=900, **_as_a_user(env))
+    if out.returncode != 0:
+        raise RuntimeError(out.stderr[:1500] + " ... " + out.stderr[-1500:])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _as_a_user(env):
     """The process as a user starts it: on every core, without XLA flags (undo the single-core
     pinning and single-thread XLA flags that `benchmarks.common` sets for CPU-time measurements,
@@ -171,7 +199,17 @@ def first_answer(repeats: int) -> None:
     sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     from benchmarks import common as C
 
-    keys = ("variator_cold", "variator_warm", "variator_warm_call", "fit_cold", "fit_warm")
+    keys = (
+        "variator_cold",
+        "variator_warm",
+        "variator_warm_call",
+        "fit_cold",
+        "fit_warm",
+        "bicycle_cold",
+        "bicycle_warm",
+        "bicycle_further",
+        "bicycle_eig_error",
+    )
     res: dict = {k: [] for k in keys}
     for _ in range(repeats):
         with tempfile.TemporaryDirectory() as d:
@@ -184,6 +222,13 @@ def first_answer(repeats: int) -> None:
             env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
             res["fit_cold"].append(run_fit(env))
             res["fit_warm"].append(run_fit(env))
+        with tempfile.TemporaryDirectory() as d:
+            env = dict(os.environ, JAXNH_CACHE_DIR=os.path.join(d, "c"))
+            c, w = run_bike(env), run_bike(env)
+            res["bicycle_cold"].append(c["total"])
+            res["bicycle_warm"].append(w["total"])
+            res["bicycle_further"].append(max(c["further"], w["further"]))
+            res["bicycle_eig_error"].append(max(c["eig_error"], w["eig_error"]))
     med = {k: statistics.median(v) for k, v in res.items()}
     for k in keys:
         print(f"{k:<20} median {med[k]:6.2f} s   runs {', '.join(f'{x:.2f}' for x in res[k])}")
@@ -196,35 +241,47 @@ def section(R: dict | None) -> list:
         return []
     m = R["median"]
     rows = [
-        ("A user's variator, import + first simulate, empty cache", 2.5, m["variator_cold"]),
-        ("The same, second process (persistent cache)", 1.0, m["variator_warm"]),
-        ("`jaxnh fit` on the embedded record, empty cache", 8.0, m["fit_cold"]),
-        ("The same, second run (cache and exported program)", 3.0, m["fit_warm"]),
+        ("A user's variator, import + first simulate, empty cache", 2.5, "variator_cold", "s"),
+        ("The same, second process (persistent cache)", 1.0, "variator_warm", "s"),
+        ("`jaxnh fit` on the embedded record, empty cache", 8.0, "fit_cold", "s"),
+        ("The same, second run (cache and exported program)", 3.0, "fit_warm", "s"),
+        ("Bicycle, import to the lean/steer matrix at 5 m/s, empty cache", 5.0, "bicycle_cold", "s"),
+        ("The same, second process (cache and exported program)", None, "bicycle_warm", "s"),
+        ("Bicycle, each further speed (median of 10, either process)", 0.010, "bicycle_further", "ms"),
     ]
     L = [
         "## First answers in fresh processes (issue 16)",
         "",
         "Wall-clock seconds from the start of a new Python process to the answer, as a user meets them: the "
-        "README's variator (`import jaxnh` and one `simulate`), and the command `jaxnh fit --quiet` on the "
+        "README's variator (`import jaxnh` and one `simulate`), the command `jaxnh fit --quiet` on the "
         "embedded record (a 12-parameter fit of 1501 samples: import, reading, starting guess, the fit, "
-        "standard errors, output), each process on all cores with JAX's default threads (not pinned like the "
-        f"CPU-time benchmarks). Medians of {R['repeats']} interleaved runs, each cold run with an empty "
-        "cache folder and each warm run a second process on the folder it wrote; "
-        "`python -m benchmarks.cache_effect --first-answer`.",
+        "standard errors, output), and the bicycle's 4×4 lean/steer state matrix "
+        "(`jaxnh.models.bicycle.linear_lean_steer(5.0)`, then 10 further speeds), each process on all cores "
+        "with JAX's default threads (not pinned like the CPU-time benchmarks). Medians of "
+        f"{R['repeats']} interleaved runs, each cold run with an empty cache folder and each warm run a "
+        "second process on the folder it wrote; `python -m benchmarks.cache_effect --first-answer`.",
         "",
         "| case | target | measured (median) | met | runs |",
         "|---|---:|---:|---|---|",
     ]
-    for label, goal, value in rows:
-        key = {
-            rows[0][0]: "variator_cold",
-            rows[1][0]: "variator_warm",
-            rows[2][0]: "fit_cold",
-            rows[3][0]: "fit_warm",
-        }[label]
-        runs = ", ".join(f"{x:.2f}" for x in R["runs"][key])
-        met = "yes" if value <= goal else f"no (+{(value / goal - 1) * 100:.0f} %)"
-        L.append(f"| {label} | ≤ {goal:g} s | {value:.2f} s | {met} | {runs} |")
+    for label, goal, key, unit in rows:
+        if key not in m:
+            continue
+        scale = 1e3 if unit == "ms" else 1.0
+        value = m[key]
+        runs = ", ".join(f"{x * scale:.3g}" for x in R["runs"][key])
+        if goal is None:
+            target, met = "–", "–"
+        else:
+            target = f"≤ {goal * scale:g} {unit}"
+            met = "yes" if value <= goal else f"no (+{(value / goal - 1) * 100:.0f} %)"
+        L.append(f"| {label} | {target} | {value * scale:.3g} {unit} | {met} | {runs} |")
+    if "bicycle_eig_error" in m:
+        L += [
+            "",
+            f"The bicycle's eigenvalues at 5 m/s agree with Meijaard et al. (2007) to "
+            f"{max(R['runs']['bicycle_eig_error']):.1e} in every run.",
+        ]
     L += [
         "",
         f"Of the warm variator run, {m['variator_warm_call']:.2f} s is the first `simulate` (tracing the "
