@@ -444,3 +444,18 @@ def test_host_arithmetic_in_numpy_matches_the_compiled_one():
         np.testing.assert_allclose(
             h[fin], c[fin], rtol=1e-9, atol=1e-12 * np.max(np.abs(h[fin]), initial=1.0), err_msg=key
         )
+
+
+def test_host_svd_of_a_non_finite_matrix_is_nan_like_the_compiled_one():
+    """NumPy's SVD raises for NaN and can hang for inf; the host fit's `thin_svd` returns NaN
+    (what jax.numpy gives), so a failed evaluation becomes a failure status, not a crash or a hang."""
+    from jaxnh.identify.problem import statistics_host, thin_svd
+
+    for bad in (np.nan, np.inf):
+        M = np.ones((6, 3))
+        M[2, 1] = bad
+        U, s, Vt = thin_svd(M)
+        assert U.shape == (6, 3) and s.shape == (3,) and Vt.shape == (3, 3)
+        assert np.all(np.isnan(s)) and np.all(np.isnan(np.asarray(jnp.linalg.svd(M, full_matrices=False)[1])))
+        st = statistics_host(M, np.ones(6))
+        assert not np.any(np.isfinite(st["std"]))

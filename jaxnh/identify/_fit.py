@@ -35,6 +35,7 @@ from .problem import (
     Problem,
     solve_least_squares_host,
     statistics_host,
+    thin_svd,
     value_and_jacobian,
 )
 
@@ -728,7 +729,7 @@ def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
     e = ((np.asarray(obs.y) + w * sigma - q_fine) / sigma).reshape(-1)
     Jd = np.asarray(J)[: n * k]
     c = np.linalg.norm(Jd, axis=0)
-    U, sv, _ = np.linalg.svd(Jd / np.where(c > 0, c, 1.0), full_matrices=False)
+    U, sv, _ = thin_svd(Jd / np.where(c > 0, c, 1.0))
     U = U[:, sv > 1e-10 * sv[0]]
     return float(np.linalg.norm(U.T @ e))
 

@@ -378,6 +378,18 @@ class _LMState(eqx.Module):
     code: jax.Array
 
 
+def thin_svd(M, xp=np):
+    """`U, s, Vt` of the thin SVD of M (n, p), NaN where M has a non-finite entry.
+
+    That is what `jax.numpy` returns; NumPy's LAPACK call raises for NaN and may
+    never return for inf, so NumPy input is checked first."""
+    if xp is np and not np.all(np.isfinite(M)):
+        n, p = M.shape
+        k = min(n, p)
+        return np.full((n, k), np.nan), np.full(k, np.nan), np.full((k, p), np.nan)
+    return xp.linalg.svd(M, full_matrices=False)
+
+
 def _lm_update(state: _LMState, r_c, J_c, limits, xp=jnp) -> _LMState:
     """One Levenberg–Marquardt iteration, given the residuals and Jacobian at `state.trial`.
 
@@ -403,7 +415,7 @@ def _lm_update(state: _LMState, r_c, J_c, limits, xp=jnp) -> _LMState:
     )
     nu = xp.where(take, 2.0, 2.0 * state.nu)
     # the linear model at the accepted point, in scaled unknowns
-    U, sv, Vt = xp.linalg.svd(J / D, full_matrices=False)
+    U, sv, Vt = thin_svd(J / D, xp)
     ur = U.T @ r
     keep = sv > 1e-12 * sv[0]
     n, p = J.shape
@@ -583,14 +595,15 @@ def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
 
 def statistics_host(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4) -> dict:
     """`statistics` in NumPy (no program to compile; NumPy arrays in and out)."""
-    return _statistics(np.asarray(J), np.asarray(r), rank_tol, leak_tol, np)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # as jax.numpy: inf/nan, no warning
+        return _statistics(np.asarray(J), np.asarray(r), rank_tol, leak_tol, np)
 
 
 def _statistics(J, r, rank_tol, leak_tol, xp):
     N, p = J.shape
     c = xp.linalg.norm(J, axis=0)
     c_safe = xp.where(c > 0, c, 1.0)
-    U, s, Vt = xp.linalg.svd(J / c_safe, full_matrices=False)
+    U, s, Vt = thin_svd(J / c_safe, xp)
     rel = s / xp.where(s[0] > 0, s[0], 1.0)
     keep = (rel > rank_tol) & (s > 0)
     rank = xp.sum(keep)
