@@ -86,6 +86,7 @@ def initial_checks(form, q, qd, t, params):
         c0 = c(qd)
         A = jax.jacfwd(c)(qd)
         a = c(jnp.zeros_like(qd))
+        finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
         on_manifold = consistent(A, c0, qd, a)
         linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
@@ -93,6 +94,7 @@ def initial_checks(form, q, qd, t, params):
         form_ok, form_status = form.check(q, qd, t, params)
         # the first failure in this order is reported
         for good, item in (
+            (finite, STATUS.constraints_not_finite),
             (~velocity_free, STATUS.velocity_free_constraint),
             (linear_ok, STATUS.constraints_nonlinear),
             (~near, STATUS.constraints_nearly_dependent),

@@ -276,6 +276,11 @@ class Mechanism(eqx.Module):
             return
         if not np.all(np.isfinite(c)):
             raise ValueError(f"Mechanism `constraints` is not finite at the initial state: c = {c}")
+        if not np.all(np.isfinite(A)):
+            raise ValueError(
+                f"Mechanism `constraints`: ∂c/∂qd at the initial state is not finite:\n{A}\n"
+                "(a constraint not differentiable there, e.g. sqrt or abs of a velocity at 0)"
+            )
         # each constraint on its own velocity scale, as the compiled check judges it
         from ._checks import consistency_tolerance, consistent, nearly_dependent
 

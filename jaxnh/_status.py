@@ -47,6 +47,12 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "∂c/∂qd is zero): a constraint on the coordinates alone is holonomic; pass it as "
         "Mechanism(holonomic=g) with g(q, t, params), not as `constraints`."
     )
+    constraints_not_finite = (
+        "The constraints c(q0, qd0, t0) or their velocity Jacobian ∂c/∂qd at the initial state "
+        "contain NaN or inf although the inputs are finite: a constraint is not defined or not "
+        "differentiable there (e.g. sqrt, abs or a division of a velocity at 0). Rewrite it in a form "
+        "that is smooth at the initial state, or start from another state."
+    )
     constraints_nonlinear = (
         "The constraints are nonlinear in the velocities (∂²c/∂qd² ≠ 0 at the initial state): "
         "pass nonlinear_constraints=True to Mechanism."
@@ -115,6 +121,7 @@ INPUT_FAILURES = (
     "mass_matrix_not_positive_definite",
     "inconsistent_velocities",
     "velocity_free_constraint",
+    "constraints_not_finite",
     "constraints_nonlinear",
     "constraints_nearly_dependent",
 )

@@ -282,6 +282,11 @@ def _trajectory(problem: Problem, theta, t):
 def _independent_from_rates(problem: Problem, q, rates, t, params):
     """Independent velocities whose constraint-consistent qd best match observed rates."""
     b, B = (np.asarray(x) for x in _velocity_map(problem, q, jnp.asarray(t, q.dtype), params))
+    if not (np.all(np.isfinite(B)) and np.all(np.isfinite(b)) and np.all(np.isfinite(rates))):
+        raise ValueError(
+            "qd0: the initial velocities cannot be estimated from the record (the constraints give a "
+            "non-finite velocity map at the first sample, or the rates are not finite); pass qd0="
+        )
     v, *_ = np.linalg.lstsq(B, np.asarray(rates) - b, rcond=None)
     return v
 
