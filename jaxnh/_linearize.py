@@ -163,14 +163,6 @@ def linearize(
     speeds = resolve_independent(mech, None if speeds is None else _indices("speeds", speeds, s), s, m)
     if speeds is None and not is_traced(q, qd, t, params):
         speeds = choose_independent(mech, q, qd, t, params)
-    if speeds is not None and m and not is_traced(q, qd, t, params):
-        ratio = float(_quality(mech, q, qd, t, params, speeds, s - m))
-        if not ratio > 1e3 * float(jnp.finfo(q.dtype).eps):
-            raise ValueError(
-                f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
-                "at this state (the dependent block of ∂c/∂qd is singular); choose other speeds or pass "
-                "speeds=None for an automatic choice."
-            )
     if accelerations is not None:
         accelerations = jnp.asarray(accelerations, dtype=q.dtype)
         if accelerations.shape != (s - m,):
@@ -178,7 +170,10 @@ def linearize(
                 f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); "
                 f"got {accelerations.shape}"
             )
-    args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations)
+    # concrete input has passed `check_values` above (which refuses constraints declared linear that
+    # are not): the compiled program then leaves out its own copy of that check
+    checked = not is_traced(q, qd, t, params)
+    args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
     # jaxnh's own models (the bicycle): the traced program is kept on disk (jaxnh._export)
     out = exported_call(_linearize_traced, args, name="linearize", compiler_options=ONE_SHOT)
     if out is None:
@@ -188,7 +183,13 @@ def linearize(
             out = _linearize_traced(*args)
         else:
             out = (_linearize_transformed if is_traced(*args[:5]) else _linearize)(*args)
-    A, mass, damping, stiffness, rates, x0 = out
+    A, mass, damping, stiffness, rates, x0, quality = out
+    if checked and speeds is not None and m and not float(quality) > 1e3 * float(jnp.finfo(q.dtype).eps):
+        raise ValueError(
+            f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
+            "at this state (the dependent block of ∂c/∂qd is singular); choose other speeds or pass "
+            "speeds=None for an automatic choice."
+        )
     names = mech.coordinate_names(s)
     dnames = tuple("d" + names[i] for i in speeds) if speeds is not None else tuple(f"dv{j}" for j in range(s - m))
     states = tuple(names[i] for i in coordinates) + dnames
@@ -205,16 +206,17 @@ def linearize(
     )
 
 
-@eqx.filter_jit
-def _quality(mech, q, qd, t, params, part, k):
-    return partition_quality(mech, q, qd, t, params, part, k)[0]
-
-
-def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations):
-    """The compiled part of `linearize` (once per mechanism, shapes and options)."""
+def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked=False):
+    """The compiled part of `linearize` (once per mechanism, shapes and options). `checked`: the
+    values were checked eagerly (`Mechanism.check_values`), so the in-graph affinity test is left out
+    and the quality of the given `speeds`' dependent block at (q, qd) is returned (last output; 1
+    otherwise) for `linearize` to refuse a singular one."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
     split = VelocitySplit(mech, s, m)
+    quality = jnp.ones((), q.dtype)
+    if checked and speeds is not None and m:
+        quality = partition_quality(mech, q, qd, t, params, speeds, s - m)[0]
     if complete is not None:
         q = complete(q, t, params)
     part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
@@ -258,12 +260,12 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
     A = jnp.concatenate([P, -solve_spd(mass, J[:, :n])], axis=0)
     rates = jnp.concatenate([qc_rate, vd0])
     out = (A, mass, damping, stiffness, rates, x0)
-    if m and not mech.nonlinear_constraints:
+    if m and not mech.nonlinear_constraints and not checked:
         # constraints declared linear that are not would give a finite, wrong matrix: NaN instead
         # (the eager path raises a ValueError for this before, via `check_values`)
         affine = constraints_affine(mech, q, qd, t, params)
         out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
-    return out
+    return (*out, quality)
 
 
 # evaluated a handful of times: XLA's cheapest settings (equinox's type hints of filter_jit leave

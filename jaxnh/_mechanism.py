@@ -254,7 +254,7 @@ class Mechanism(eqx.Module):
         self.check_finite(q, qd, t, params)
         if not all(_is_concrete(x) for x in (q, qd, t)) or not _params_concrete(params):
             return
-        M, c, A, H = (np.asarray(x) for x in _initial_state_terms(self, q, qd, t, params))
+        M, c, A, H, near, allowed, on_manifold = (np.asarray(x) for x in _initial_state_terms(self, q, qd, t, params))
         if not np.all(np.isfinite(M)):
             raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
         # Cholesky's accuracy does not depend on the scaling of the coordinates
@@ -281,12 +281,9 @@ class Mechanism(eqx.Module):
                 f"Mechanism `constraints`: ∂c/∂qd at the initial state is not finite:\n{A}\n"
                 "(a constraint not differentiable there, e.g. sqrt or abs of a velocity at 0)"
             )
-        # each constraint on its own velocity scale, as the compiled check judges it
-        from ._checks import consistency_tolerance, consistent, nearly_dependent
-
-        qd_np = np.asarray(qd)
-        A_j, c_j, qd_j = jnp.asarray(A), jnp.asarray(c), jnp.asarray(qd_np)
-        if bool(nearly_dependent(A_j)):
+        # each constraint on its own velocity scale, as the compiled check judges it (the same
+        # functions, evaluated in the program of `_initial_state_terms`)
+        if bool(near):
             sv = np.linalg.svd(A / np.linalg.norm(A, axis=1)[:, None], compute_uv=False)
             raise ValueError(
                 "Mechanism `constraints`: the rows of ∂c/∂qd at the initial state are nearly dependent "
@@ -295,8 +292,7 @@ class Mechanism(eqx.Module):
                 "binds is decided by rounding: write a repeated constraint identically or leave it out, or "
                 "reformulate the constraints so that their rows are well apart."
             )
-        allowed = np.asarray(consistency_tolerance(A_j, qd_j, c_j - A_j @ qd_j))
-        if constraint_rtol is None and not bool(consistent(A_j, c_j, qd_j, c_j - A_j @ qd_j)):
+        if constraint_rtol is None and not bool(on_manifold):
             raise ValueError(
                 f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected ≤ {allowed} "
                 "(√eps × each constraint's velocity scale ‖∂c_k/∂qd‖ · ‖the velocities it involves‖ + "
@@ -315,14 +311,28 @@ class Mechanism(eqx.Module):
 
 @eqx.filter_jit
 def _initial_state_terms(mech: Mechanism, q, qd, t, params):
-    """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state (compiled once)."""
+    """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state, and the compiled checks'
+    verdicts on them (rows nearly dependent; each row's allowance for |c|; qd on the constraints),
+    in one program (compiled once per structure; the checks alone eagerly were some 40 programs)."""
+    from ._checks import consistency_tolerance, consistent, nearly_dependent
+
     q, qd = jnp.asarray(q), jnp.asarray(qd)
     M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
 
     def c(v):
         return mech.constraint(q, v, t, params)
 
-    return M, c(qd), jax.jacfwd(c)(qd), jax.jacfwd(jax.jacfwd(c))(qd)
+    c0, A = c(qd), jax.jacfwd(c)(qd)
+    a = c0 - A @ qd
+    return (
+        M,
+        c0,
+        A,
+        jax.jacfwd(jax.jacfwd(c))(qd),
+        nearly_dependent(A),
+        consistency_tolerance(A, qd, a),
+        consistent(A, c0, qd, a),
+    )
 
 
 _SHAPES_CHECKED: dict = {}

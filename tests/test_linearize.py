@@ -91,3 +91,26 @@ def test_argument_errors():
     np.testing.assert_allclose(
         jax.jit(lambda a: linearize(WHEEL, WP, a, qd).A)(q), linearize(WHEEL, WP, q, qd).A, rtol=1e-12, atol=1e-12
     )
+
+
+def test_refusals_eagerly_and_under_transformations():
+    """Eagerly, a singular dependent block for the given speeds and constraints declared linear that
+    are not raise ValueErrors naming the fix (checked in the program's own outputs and by
+    `check_values`); under jit/vmap the same inputs give NaN matrices, never finite wrong ones."""
+    q, qd = jnp.zeros(2), jnp.zeros(2)
+    rigid_axle = dict(WP, r=jnp.asarray(0.0))  # ẋ = 0·θ̇: θ̇ cannot be solved from the constraint
+    with pytest.raises(ValueError, match="cannot be solved from the constraints"):
+        linearize(WHEEL, rigid_axle, q, qd, coordinates=(0,), speeds=(0,))
+    # the other speed is fine: ẋ = 0, θ free (no restoring force on it)
+    lin = linearize(WHEEL, rigid_axle, q, qd, coordinates=(0,), speeds=(1,))
+    np.testing.assert_allclose(lin.A, [[0.0, 0.0], [0.0, 0.0]], atol=1e-14)
+
+    bent = nh.Mechanism(
+        WHEEL.kinetic,
+        constraints=lambda q, qd, t, p: jnp.stack([qd[0] - p["r"] * qd[1] + 0.3 * qd[1] ** 2]),
+        potential=WHEEL.potential,
+    )
+    with pytest.raises(ValueError, match="nonlinear_constraints=True"):
+        linearize(bent, WP, q, jnp.array([0.25, 1.0]), coordinates=(0,), speeds=(1,))
+    traced = jax.jit(lambda v: linearize(bent, WP, q, v, coordinates=(0,), speeds=(1,)).A)(jnp.array([0.25, 1.0]))
+    assert np.all(np.isnan(np.asarray(traced)))

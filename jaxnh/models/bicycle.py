@@ -43,6 +43,7 @@ import numpy as np
 from .._export import ONE_SHOT as _ONE_SHOT
 from .._holonomic import HolonomicMechanism
 from .._linearize import Linearization, linearize
+from .._status import is_traced
 from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
 
 
@@ -335,6 +336,8 @@ def linear_lean_steer(v, params=None, method: str = "lagrange"):
     for many speeds at once.
     """
     A = linearized(v, params, method).A
+    if not is_traced(A):  # concrete: select on the host (eagerly, each indexing op is a program to compile)
+        return jnp.asarray(np.asarray(A)[np.ix_(LEAN_STEER, LEAN_STEER)])
     idx = jnp.asarray(LEAN_STEER)
     return A[idx][:, idx]
 
