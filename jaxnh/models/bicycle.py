@@ -270,11 +270,12 @@ def upright(v, params):
     The reference configuration, moving along x: ẋ = v and the wheels turn at
     −v/r (their axles point to the right, +y, so forward rolling is a negative rotation).
     """
-    v = jnp.asarray(v, dtype=jnp.result_type(float))
-    z = jnp.zeros_like(v)
-    q = jnp.zeros(8, v.dtype)
-    qd = jnp.stack([v, z, z, z, z, -v / params["rR"], z, -v / params["rF"]])
-    return q, qd
+    xp = np if not is_traced(v, params) else jnp  # concrete: NumPy (eager jnp would compile each op)
+    v = xp.asarray(v, dtype=jnp.result_type(float))
+    z = xp.zeros_like(v)
+    q = xp.zeros(8, v.dtype)
+    qd = xp.stack([v, z, z, z, z, -v / xp.asarray(params["rR"]), z, -v / xp.asarray(params["rF"])])
+    return jnp.asarray(q), jnp.asarray(qd)
 
 
 FREE = tuple(i for i in range(8) if i != PITCH)  # coordinates of the "appell" (reduced) mechanism
