@@ -276,6 +276,9 @@ def section(R: dict | None) -> list:
             target = f"≤ {goal * scale:g} {unit}"
             met = "yes" if value <= goal else f"no (+{(value / goal - 1) * 100:.0f} %)"
         L.append(f"| {label} | {target} | {value * scale:.3g} {unit} | {met} | {runs} |")
+    load = R.get("machine", {}).get("load_average")
+    if load:
+        L += ["", f"Load average when the runs started: {load[0]:.2f} (2 cores; the machine is shared)."]
     if "bicycle_eig_error" in m:
         L += [
             "",
