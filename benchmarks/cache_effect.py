@@ -84,13 +84,6 @@ print(json.dumps({"total": t_first, "further": float(np.median(further)), "eig_e
 """
 
 
-def run_bike(env):
-    out = subprocess.run([sys.executable, "-c", BIKE], capture_output=True, text=True, timeout=900, **_as_a_user(env))
-    if out.returncode != 0:
-        raise RuntimeError(out.stderr[:1500] + " ... " + out.stderr[-1500:])
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def _as_a_user(env):
     """The process as a user starts it: on every core, without XLA flags (undo the single-core
     pinning and single-thread XLA flags that `benchmarks.common` sets for CPU-time measurements,
@@ -105,11 +98,22 @@ def _as_a_user(env):
     return {"env": env, "preexec_fn": unpin}
 
 
-def run_user(env):
-    out = subprocess.run([sys.executable, "-c", USER], capture_output=True, text=True, timeout=600, **_as_a_user(env))
+def _run_script(script, env, timeout):
+    """Run `script` in a new Python process as a user would; its last stdout line is JSON."""
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=timeout, **_as_a_user(env)
+    )
     if out.returncode != 0:
         raise RuntimeError(out.stderr[:1500] + " ... " + out.stderr[-1500:])
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_user(env):
+    return _run_script(USER, env, 600)
+
+
+def run_bike(env):
+    return _run_script(BIKE, env, 900)
 
 
 def run_fit(env):
