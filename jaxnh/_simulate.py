@@ -596,7 +596,9 @@ def _run_traced(
     qd0r = jnp.where(finite, qd0, 0.0)
     tsr = jnp.where(finite & increasing, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
     t0r = tsr[0]
-    checked, check_status = initial_checks(form, q0r, qd0r, t0r, params)
+    # the checks and diagnoses below only decide a status: no derivative flows through them, and
+    # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
+    checked, check_status = initial_checks(*_no_grad((form, q0r, qd0r, t0r, params)))
     ok = finite & increasing & checked
     y0 = form.state(q0r, qd0r, t0r, params)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
@@ -689,11 +691,12 @@ def _run_traced(
     if isinstance(form, Appell):
         result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
     if diagnose:
-        result = diagnose_stall(form, y_end, t_end, params, result, start=(q0r, qd0r, t0r))
+        form_, y_, t_, params_ = _no_grad((form, y_end, t_end, params))
+        result = diagnose_stall(form_, y_, t_, params_, result, start=_no_grad((q0r, qd0r, t0r)))
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check)
-        ratio = _stiffness(form, ys, out_ts, params, stats, t0r)
+        ratio = _stiffness(*_no_grad((form, ys, out_ts, params, stats, t0r)))
         stats["stiffness"] = ratio
         result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
     status = STATUS.where(checked, result, check_status)
@@ -744,8 +747,16 @@ def _explicit(solver) -> bool:
     return not isinstance(inner, diffrax.AbstractImplicitSolver)
 
 
+def _no_grad(tree):
+    """`tree` with `stop_gradient` on its array leaves (other leaves as they are)."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
+
+
 def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
-    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states."""
+    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states.
+
+    A diagnostic that decides the `stiff` status (and is reported as `stats["stiffness"]`); it is
+    computed with derivatives stopped at its inputs, so it has none itself."""
     n = ts.shape[0]
     idx = jnp.unique(jnp.linspace(0, n - 1, min(samples, n)).astype(jnp.int32), size=min(samples, n))
     sub = jax.tree_util.tree_map(lambda x: x[idx], ys)
