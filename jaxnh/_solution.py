@@ -48,7 +48,11 @@ class Solution(eqx.Module):
             for an exact solution.
         stats: dict with `num_steps` (attempted), `num_accepted_steps`,
             `num_rejected_steps`, `rhs_evaluations` (vector-field calls:
-            stages per step times attempted steps), `max_steps`.
+            stages per step times attempted steps), `max_steps`, and for
+            explicit solvers whose sensitivities are not in the error
+            control `stiffness` (mean step × spectral radius of the field's
+            Jacobian, dimensionless; above 1.5 the status is `stiff`).
+            Counts and diagnostics: they carry no derivatives.
         status: `jaxnh.STATUS` item (diffrax's `RESULTS` extended):
             `STATUS.successful`, or why the solve failed. After a failure the
             values past the failure time are NaN or inf, never a
