@@ -130,30 +130,3 @@ def test_nearly_dependent_band_follows_the_dtype():
     assert bool(nearly_dependent(rows(1e-9, jnp.float64)))
     assert not bool(nearly_dependent(rows(1e-9, jnp.float32)))
 
-
-def _rooted(q, qd, t, p):
-    # √|phi1'| has an infinite slope at phi1' = 0: not differentiable there
-    return jnp.stack([jnp.sqrt(jnp.abs(qd[0])) - qd[1]])
-
-
-ROOTED = nh.Mechanism(T, constraints=_rooted, nonlinear_constraints=True)
-
-
-@pytest.mark.parametrize("method", ["appell", "lagrange"])
-def test_constraint_not_differentiable_at_the_start_is_refused(method):
-    """A constraint whose ∂c/∂qd is infinite at qd0 (finite inputs) gets its own status, eagerly,
-    under jit and under vmap, instead of being taken for a singular split; at a state where it is
-    smooth the same mechanism runs (φ2' = √φ1' holds throughout, the shafts being free)."""
-    name = nh.STATUS.constraints_not_finite
-    want = int(name._value)
-    qd_bad, qd_good = jnp.array([0.0, 0.0, 0.0]), jnp.array([4.0, 2.0, 0.0])
-
-    def st(qd0):
-        return nh.simulate(ROOTED, P, jnp.zeros(3), qd0, TS, method, throw=False).status._value
-
-    assert int(st(qd_bad)) == int(jax.jit(st)(qd_bad)) == want
-    assert list(np.asarray(jax.vmap(st)(jnp.stack([qd_bad, qd_good])))) == [want, 0]
-    with pytest.raises(nh.InvalidInitialState, match="not differentiable"):
-        nh.simulate(ROOTED, P, jnp.zeros(3), qd_bad, TS, method)
-    sol = nh.simulate(ROOTED, P, jnp.zeros(3), qd_good, TS, method)
-    np.testing.assert_allclose(sol.qd[:, 1], np.sqrt(np.abs(sol.qd[:, 0])), rtol=1e-8)

@@ -141,14 +141,17 @@ def test_knife_edge_through_heading_pi_over_2_with_coarse_report_times():
 def c_adversarial(q, qd, t, p):
     """Two constraints whose defects are switched on by parameters: a = b = 0 removes the
     velocities from the first (a holonomic constraint in disguise), n ≠ 0 makes it nonlinear,
-    r = 1 repeats it in the second (redundant constraints)."""
-    c1 = p["a"] * qd[0] + p["b"] * qd[1] + p["h"] * (q[0] - q[1]) + p["n"] * qd[0] ** 2
+    s ≠ 0 adds s·√|qd0|, not differentiable at qd0 = 0 (∂c/∂qd infinite there), r = 1 repeats
+    it in the second (redundant constraints)."""
+    rooted = p["s"] != 0  # (the √ only where switched on: 0·∞ in its derivative at 0 would be NaN)
+    root = jnp.where(rooted, p["s"] * jnp.sqrt(jnp.abs(jnp.where(rooted, qd[0], 1.0))), 0.0)
+    c1 = p["a"] * qd[0] + p["b"] * qd[1] + p["h"] * (q[0] - q[1]) + p["n"] * qd[0] ** 2 + root
     c2 = p["r"] * (p["a"] * qd[0] + p["b"] * qd[1]) + (1 - p["r"]) * qd[2]
     return jnp.stack([c1, c2])
 
 
 ADV = nh.Mechanism(lambda q, qd, t, p: 0.5 * jnp.sum(p["m"] * qd**2), constraints=c_adversarial)
-GOOD = {"a": 1.0, "b": -1.0, "h": 0.0, "n": 0.0, "r": 0.0, "m": jnp.array([1.0, 2.0, 3.0])}
+GOOD = {"a": 1.0, "b": -1.0, "h": 0.0, "n": 0.0, "r": 0.0, "s": 0.0, "m": jnp.array([1.0, 2.0, 3.0])}
 QD_GOOD = jnp.array([1.0, 1.0, 0.0])
 
 CASES = {
@@ -156,6 +159,7 @@ CASES = {
     "mass_matrix_not_positive_definite": ({"m": jnp.array([1.0, -2.0, 3.0])}, QD_GOOD, jnp.zeros(3)),
     "velocity_free_constraint": ({"a": 0.0, "b": 0.0, "h": 1.0}, QD_GOOD, jnp.zeros(3)),
     "constraints_nonlinear": ({"n": 1.0}, jnp.array([1.0, 2.0, 0.0]), jnp.zeros(3)),
+    "constraints_not_finite": ({"s": 1.0}, jnp.zeros(3), jnp.zeros(3)),
     "singular_split": ({"r": 1.0}, QD_GOOD, jnp.zeros(3)),
     "inconsistent_velocities": ({}, jnp.array([2e-9, 1e-9, 0.0]), jnp.zeros(3)),
     "successful": ({}, QD_GOOD, jnp.zeros(3)),
