@@ -129,4 +129,3 @@ def test_nearly_dependent_band_follows_the_dtype():
     assert not bool(nearly_dependent(rows(0.0, jnp.float64))) and not bool(nearly_dependent(rows(0.0, jnp.float32)))
     assert bool(nearly_dependent(rows(1e-9, jnp.float64)))
     assert not bool(nearly_dependent(rows(1e-9, jnp.float32)))
-
