@@ -164,9 +164,9 @@ _F = TypeVar("_F", bound=Callable)
 
 
 def one_shot_jit(fn: _F) -> _F:
-    """`equinox.filter_jit` with `ONE_SHOT`: for jaxnh's host-side helpers that run a few times
-    per call (a fit's starting guess, its error bands). Inside a caller's `jit` it is inlined
-    like any nested jit, so the options then do not apply."""
+    """`equinox.filter_jit` with `ONE_SHOT`: for jaxnh's programs that run a few times per
+    structure (a linearisation, a fit's starting guess and error bands). Inside a caller's `jit`
+    it is inlined like any nested jit, so the options then do not apply."""
     # (equinox's type hints of filter_jit leave out the keyword arguments it passes on to jax.jit)
     return eqx.filter_jit(fn, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue,reportReturnType]
 

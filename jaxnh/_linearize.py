@@ -43,7 +43,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._checks import constraints_affine
-from ._export import exported_call, ONE_SHOT
+from ._export import exported_call, ONE_SHOT, one_shot_jit
 from ._mechanism import Mechanism
 from ._status import is_traced, under_jit
 from .equations.base import as_data, as_float, as_time
@@ -268,9 +268,8 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
     return (*out, quality)
 
 
-# evaluated a handful of times: XLA's cheapest settings (equinox's type hints of filter_jit leave
-# out the keyword arguments it passes on to jax.jit)
-_linearize = eqx.filter_jit(_linearize_traced, compiler_options=ONE_SHOT)  # pyright: ignore[reportCallIssue]
+# evaluated a handful of times: XLA's cheapest settings
+_linearize = one_shot_jit(_linearize_traced)
 _linearize_transformed = eqx.filter_jit(_linearize_traced)
 
 

@@ -24,7 +24,7 @@ from importlib import resources
 
 import numpy as np
 
-from ._host import array_module
+from .._host import array_module
 
 
 __all__ = [

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._host import array_module
 from ..profiles import trainable
-from ._host import array_module
 
 
 __all__ = ["Parametrisation", "resolve"]

@@ -35,13 +35,13 @@ from __future__ import annotations
 import functools
 from typing import Callable
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import ONE_SHOT as _ONE_SHOT
+from .._export import ONE_SHOT as _ONE_SHOT, one_shot_jit
 from .._holonomic import HolonomicMechanism
+from .._host import array_module
 from .._linearize import Linearization, linearize
 from .._status import is_traced
 from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
@@ -270,7 +270,7 @@ def upright(v, params):
     The reference configuration, moving along x: ẋ = v and the wheels turn at
     −v/r (their axles point to the right, +y, so forward rolling is a negative rotation).
     """
-    xp = np if not is_traced(v, params) else jnp  # concrete: NumPy (eager jnp would compile each op)
+    xp = array_module(v, params)  # concrete: NumPy (eager jnp would compile each op)
     v = xp.asarray(v, dtype=jnp.result_type(float))
     z = xp.zeros_like(v)
     q = xp.zeros(8, v.dtype)
@@ -352,10 +352,7 @@ def _linearized_speeds_uncompiled(speeds, params, method):
     return jax.vmap(lambda v: linearized(v, params, method))(speeds)
 
 
-# (equinox's type hints of filter_jit leave out the keyword arguments it passes on to jax.jit)
-_linearized_speeds: Callable[..., Linearization] = eqx.filter_jit(  # pyright: ignore[reportCallIssue]
-    _linearized_speeds_uncompiled, compiler_options=ONE_SHOT
-)
+_linearized_speeds: Callable[..., Linearization] = one_shot_jit(_linearized_speeds_uncompiled)
 
 
 def linearized_speeds(speeds, params=None, method: str = "lagrange"):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from .._status import is_traced
+from ._status import is_traced
 
 
 def array_module(*trees):
