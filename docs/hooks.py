@@ -5,6 +5,8 @@
   wrote, not copies that could go stale.
 * Every name in `jaxnh.__all__` must be documented by an API page
   (`::: jaxnh.NAME` or `::: jaxnh.module`), else the build fails.
+* Pages may name only Markdown files the repository holds and relative
+  paths inside it (the site stands alone), else the build fails.
 * Executed examples run with matplotlib's non-interactive backend.
 """
 
@@ -15,6 +17,7 @@ import os
 import re
 from pathlib import Path
 
+import standalone  # docs/standalone.py (mkdocs puts the hooks' folder on the path)
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
@@ -50,9 +53,9 @@ def on_files(files, config):
 def on_page_markdown(markdown, page, config, files):
     for name in re.findall(r"^:::\s+([\w.]+)", markdown, flags=re.M):
         _documented.add(name)
-    for bad in ("DESIGN.md", "NOTES.md", "../shared"):
-        if bad in markdown:
-            raise PluginError(f"{page.file.src_uri} refers to {bad}, which is not part of the repository")
+    problem = standalone.problem(markdown, page.file.src_uri)
+    if problem:
+        raise PluginError(problem)
     return markdown
 
 
