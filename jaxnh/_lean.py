@@ -395,12 +395,20 @@ def lean_solve(
         yc = lax.stop_gradient(y0)
         fc = lax.stop_gradient(f0)
         scale = atol + jnp.abs(yc) * rtol
-        d0 = norm(yc / scale)
-        d1 = norm(fc / scale)
+
+        def big_norm(x):
+            # the norm is homogeneous: scaled by its largest entry first, so that rates of 1e160
+            # against atol = 1e-10 give 1e170, not an overflowed square (inf, then a 0/0 step)
+            m = jnp.max(jnp.abs(x))
+            ok = jnp.isfinite(m) & (m > 0)
+            return jnp.where(ok, m * norm(x / jnp.where(ok, m, 1)), norm(x))
+
+        d0 = big_norm(yc / scale)
+        d1 = big_norm(fc / scale)
         small = (d0 < 1e-5) | (d1 < 1e-5)
         h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1, d1)).astype(dtype)
         f1 = lax.stop_gradient(vf(t0 + h0, yc + h0 * fc, lax.stop_gradient(args)))
-        d2 = norm((f1 - fc) / scale) / h0
+        d2 = big_norm((f1 - fc) / scale) / h0
         max_d = jnp.maximum(d1, d2)
         h1 = jnp.where(
             max_d <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(max_d <= 1e-15, 1, max_d)) ** (1 / q)

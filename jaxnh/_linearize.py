@@ -43,9 +43,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._checks import constraints_affine
-from ._export import exported_call, ONE_SHOT, one_shot_jit
+from ._export import one_shot_jit
 from ._mechanism import Mechanism
-from ._status import is_traced, under_jit
+from ._status import is_traced
 from .equations.base import as_data, as_float, as_time
 from .equations.split import (
     best_partition,
@@ -53,6 +53,7 @@ from .equations.split import (
     partition_quality,
     pick,
     resolve_independent,
+    value_and_jacfwd,
     VelocitySplit,
 )
 from .linalg import mm, solve_spd
@@ -174,15 +175,9 @@ def linearize(
     # are not): the compiled program then leaves out its own copy of that check
     checked = not is_traced(q, qd, t, params)
     args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
-    # jaxnh's own models (the bicycle): the traced program is kept on disk (jaxnh._export)
-    out = exported_call(_linearize_traced, args, name="linearize", compiler_options=ONE_SHOT)
-    if out is None:
-        # inside the caller's jit: inlined (a nested jit only adds tracing); under vmap/grad: jitted
-        # without compiler options (JAX takes them only on a top-level call)
-        if under_jit():
-            out = _linearize_traced(*args)
-        else:
-            out = (_linearize_transformed if is_traced(*args[:5]) else _linearize)(*args)
+    # compiled once per structure with XLA's cheapest settings; for jaxnh's own models (the bicycle)
+    # kept on disk and shipped as an exported program (jaxnh._export); traced into a caller's jit
+    out = _linearize(*args)
     A, mass, damping, stiffness, rates, x0, quality = out
     if checked and speeds is not None and m and not float(quality) > 1e3 * float(jnp.finfo(q.dtype).eps):
         raise ValueError(
@@ -240,23 +235,38 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
             lhs = lagrange_expression(mech, qq, qdot, qdd, t, params)
         return mm(B.T, lhs - mech.generalized_forces(qq, qdot, t, params))
 
+    # a kept coordinate that is an independent one moves at its speed: its row of ∂q̇_C/∂x is a
+    # unit vector, whatever the state (known when the partition is); the others by forward mode
+    given = isinstance(part, tuple)
+    slaved = tuple(j for j, i in enumerate(coordinates) if not (given and i in part))
+
     def coordinate_rates(x):
         qq = configuration(x[:nc])
-        return pick(split.velocities_and_rates(qq, x[nc:], t, params, part)[0], coordinates)
+        return pick(pick(split.velocities(qq, x[nc:], t, params, part), coordinates), slaved)
 
     xc0, v0 = pick(q, coordinates), split.independent_of(qd, part)
     x0 = jnp.concatenate([xc0, v0])
     n = x0.shape[0]
     if accelerations is None:
         # E is affine in v̇: its value at v̇ = 0 and the mass matrix give the operating accelerations
-        E0, mass = _value_and_jacobian(lambda vd: E(xc0, v0, vd), jnp.zeros_like(v0))
+        E0, mass = value_and_jacfwd(lambda vd: E(xc0, v0, vd), jnp.zeros_like(v0))
         vd0 = solve_spd(mass, -E0)
     else:
         vd0 = accelerations
-    E1, J = _value_and_jacobian(lambda z: E(z[:nc], z[nc:n], z[n:]), jnp.concatenate([x0, vd0]))
+    E1, J = value_and_jacfwd(lambda z: E(z[:nc], z[nc:n], z[n:]), jnp.concatenate([x0, vd0]))
     stiffness, damping, mass = J[:, :nc], J[:, nc:n], J[:, n:]
     vd0 = vd0 - solve_spd(mass, E1)  # exact already unless `accelerations` was wrong
-    qc_rate, P = _value_and_jacobian(coordinate_rates, x0)
+    qc_rate = jnp.zeros((nc,), x0.dtype)
+    P = jnp.zeros((nc, n), x0.dtype)
+    if given:
+        for j, i in enumerate(coordinates):
+            if i in part:
+                qc_rate = qc_rate.at[j].set(v0[part.index(i)])
+                P = P.at[j, nc + part.index(i)].set(1.0)
+    if slaved:
+        rate, jac = value_and_jacfwd(coordinate_rates, x0)
+        qc_rate = qc_rate.at[jnp.asarray(slaved)].set(rate)
+        P = P.at[jnp.asarray(slaved)].set(jac)
     A = jnp.concatenate([P, -solve_spd(mass, J[:, :n])], axis=0)
     rates = jnp.concatenate([qc_rate, vd0])
     out = (A, mass, damping, stiffness, rates, x0)
@@ -270,7 +280,6 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
 
 # evaluated a handful of times: XLA's cheapest settings
 _linearize = one_shot_jit(_linearize_traced)
-_linearize_transformed = eqx.filter_jit(_linearize_traced)
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
@@ -281,9 +290,3 @@ def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
 
     _, dp = jax.jvp(momentum, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
     return dp - jax.grad(mech.kinetic, argnums=0)(q, qd, t, params)
-
-
-def _value_and_jacobian(f, x):
-    """f(x) and ∂f/∂x by forward mode (one linearisation, n tangents)."""
-    y, jvp = jax.linearize(f, x)
-    return y, jax.vmap(jvp, in_axes=1, out_axes=1)(jnp.eye(x.shape[0], dtype=x.dtype))

@@ -23,6 +23,8 @@ import jax.core
 import jax.numpy as jnp
 import numpy as np
 
+from ._export import one_shot_jit
+
 
 __all__ = ["Mechanism"]
 
@@ -309,7 +311,7 @@ class Mechanism(eqx.Module):
             )
 
 
-@eqx.filter_jit
+@one_shot_jit  # run once per check: XLA's cheapest settings
 def _initial_state_terms(mech: Mechanism, q, qd, t, params):
     """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state, and the compiled checks'
     verdicts on them (rows nearly dependent; each row's allowance for |c|; qd on the constraints),

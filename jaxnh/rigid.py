@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .linalg import mm
+
 
 __all__ = [
     "RigidBodies",
@@ -90,7 +92,7 @@ def rot_axis(axis, a):
     """Rotation by angle `a` (rad) about the unit vector `axis` (Rodrigues' formula)."""
     axis = jnp.asarray(axis, dtype=jnp.result_type(a, float))
     K = skew(axis)
-    return jnp.eye(3, dtype=K.dtype) + jnp.sin(a) * K + (1 - jnp.cos(a)) * (K @ K)
+    return jnp.eye(3, dtype=K.dtype) + jnp.sin(a) * K + (1 - jnp.cos(a)) * mm(K, K)
 
 
 # --- differentiation along the motion ----------------------------------------------
@@ -109,9 +111,9 @@ def angular_velocity(R, Rdot, frame: str = "body"):
     inertial components, `vee(Ṙ Rᵀ)`.
     """
     if frame == "body":
-        return vee(R.T @ Rdot)
+        return vee(mm(R.T, Rdot))
     if frame == "space":
-        return vee(Rdot @ R.T)
+        return vee(mm(Rdot, R.T))
     raise ValueError(f"frame must be 'body' or 'space'; got {frame!r}")
 
 
@@ -192,7 +194,7 @@ class RigidBodies(eqx.Module):
         vel = self.velocities(q, qd, t, p)
         T = 0.0
         for (v, w), (m, I) in zip(vel, self._inertias(p, len(vel))):
-            T = T + 0.5 * m * jnp.dot(v, v) + 0.5 * jnp.dot(w, I @ w)
+            T = T + 0.5 * m * mm(v, v) + 0.5 * mm(w, mm(I, w))
         return T
 
     def accelerations(self, q, qd, qdd, t, p):
@@ -214,7 +216,7 @@ class RigidBodies(eqx.Module):
         acc = self.accelerations(q, qd, qdd, t, p)
         S = 0.0
         for (_, w, a, dw), (m, I) in zip(acc, self._inertias(p, len(acc))):
-            S = S + 0.5 * m * jnp.dot(a, a) + 0.5 * jnp.dot(dw, I @ dw) + jnp.dot(dw, jnp.cross(w, I @ w))
+            S = S + 0.5 * m * mm(a, a) + 0.5 * mm(dw, mm(I, dw)) + mm(dw, jnp.cross(w, mm(I, w)))
         return S
 
     def potential(self, q, t, p):
@@ -225,7 +227,7 @@ class RigidBodies(eqx.Module):
         poses = self._poses(q, t, p)
         V = 0.0
         for (r, _), (m, _) in zip(poses, self._inertias(p, len(poses))):
-            V = V - m * jnp.dot(g, r)
+            V = V - m * mm(g, r)
         return V
 
 
@@ -292,8 +294,8 @@ class Wheel(eqx.Module):
     def _geometry(self, c, R, p):
         n = jnp.asarray(self.normal, dtype=c.dtype)
         a = R[:, self.axle]
-        u = n - jnp.dot(n, a) * a
-        u = u / jnp.sqrt(jnp.dot(u, u))
+        u = n - mm(n, a) * a
+        u = u / jnp.sqrt(mm(u, u))
         return c - self.radius(p) * u
 
     def contact_point(self, q, t, p):
@@ -304,7 +306,7 @@ class Wheel(eqx.Module):
     def height(self, q, t, p):
         """Height of the lowest rim point above the plane, m (scalar; 0 on the ground)."""
         n = jnp.asarray(self.normal)
-        return jnp.dot(n, self.contact_point(q, t, p))
+        return mm(n, self.contact_point(q, t, p))
 
     def contact_velocity(self, q, qd, t, p):
         """Velocity of the wheel's material point at the contact, m/s (3,)."""
@@ -316,4 +318,4 @@ class Wheel(eqx.Module):
     def slip(self, q, qd, t, p):
         """Tangential slip velocity at the contact along `tangents`, m/s (2,)."""
         v = self.contact_velocity(q, qd, t, p)
-        return jnp.asarray(self.tangents, dtype=v.dtype) @ v
+        return mm(jnp.asarray(self.tangents, dtype=v.dtype), v)

@@ -79,4 +79,64 @@ def test_not_kept_when_the_key_cannot_see_the_program(folder, monkeypatch):
     assert seen == [None]  # traced: the caller's program
     assert not folder.exists() or os.listdir(folder) == []
     monkeypatch.setattr(_cache, "_active", None)  # JAXNH_CACHE_DIR=off
+    monkeypatch.setenv("JAXNH_CACHE_DIR", "off")
     assert _export.exported_call(solve_spd, (M, b), name="spd") is None
+
+
+def test_shipped_program_is_found_and_right(folder, tmp_path, monkeypatch):
+    """A program built into the shipped folder is used by a later process whose own folder is
+    empty (nothing is traced or written there), gives the same answer, and is not read when the
+    cache is turned off."""
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    monkeypatch.setattr(_export, "SHIPPED", str(shipped))
+    M, b = spd(4)
+    monkeypatch.setattr(_export, "_BUILDING", True)
+    _export.exported_call(solve_spd, (M, b), {}, name="spd")
+    monkeypatch.setattr(_export, "_BUILDING", False)
+    (built,) = os.listdir(shipped)
+    assert not folder.exists() or os.listdir(folder) == []  # building writes only the shipped folder
+    monkeypatch.setattr(_export, "_MEMO", {})
+    traced = []
+    monkeypatch.setattr(jax.export, "export", lambda *a, **k: traced.append(1) or pytest.fail("traced again"))
+    M2, b2 = spd(4, seed=3)
+    out = _export.exported_call(solve_spd, (M2, b2), {}, name="spd")
+    np.testing.assert_allclose(np.asarray(out), np.asarray(solve_spd(M2, b2)), rtol=1e-14)
+    assert traced == [] and (not folder.exists() or os.listdir(folder) == [])
+    assert os.listdir(shipped) == [built]
+    monkeypatch.setattr(_export, "_MEMO", {})
+    monkeypatch.setattr(_cache, "_active", None)
+    monkeypatch.setenv("JAXNH_CACHE_DIR", "off")
+    assert _export.exported_call(solve_spd, (M2, b2), {}, name="spd") is None
+
+
+def test_shipped_programs_match_the_sources():
+    """The programs in jaxnh/programs/ were built from these sources (`make programs` after a
+    change); with other versions of the JAX stack they are never used (the key differs), and
+    must still be readable files."""
+    info = _export.manifest()
+    assert info, "jaxnh/programs/MANIFEST.json is missing: run `make programs`"
+    on_disk = sorted(f for f in os.listdir(_export.SHIPPED) if f.endswith(".bin"))
+    assert on_disk == info["files"] and len(on_disk) >= 2
+    assert set(info["jobs"]) == set(_export.SHIPPED_JOBS)
+    if info["versions"] == _export._versions() and info["backend"] == jax.default_backend():
+        assert info["source_digest"] == _export._source_digest(), (
+            "jaxnh's sources changed since the shipped programs were built: run `make programs`"
+        )
+    for f in on_disk:
+        assert _export._load(os.path.join(_export.SHIPPED, f)) is not None, f
+
+
+def test_one_shot_jit_under_transformations(folder):
+    """A one-shot program (kept as an exported program when called eagerly) gives the same
+    values and derivatives eagerly, under jit, vmap and grad."""
+    M, b = spd(3)
+    f = _export.one_shot_jit(solve_spd)
+    x = f(M, b)
+    assert os.listdir(folder)  # kept
+    np.testing.assert_allclose(np.asarray(x), np.linalg.solve(np.asarray(M), np.asarray(b)), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(jax.jit(f)(M, b)), np.asarray(x), rtol=1e-14)
+    bs = jnp.stack([b, 2 * b])
+    np.testing.assert_allclose(np.asarray(jax.vmap(f, in_axes=(None, 0))(M, bs))[1], 2 * np.asarray(x), rtol=1e-13)
+    g = jax.grad(lambda b: f(M, b).sum())(b)
+    np.testing.assert_allclose(np.asarray(g), np.linalg.solve(np.asarray(M).T, np.ones(3)), rtol=1e-12)

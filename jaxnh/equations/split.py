@@ -49,6 +49,15 @@ with ratio 1, so the band [0.25, 1] keeps the choice from chattering."""
 Partition = Union[tuple, jax.Array]
 
 
+def value_and_jacfwd(f, x):
+    """f(x) and ∂f/∂x (by forward mode) in one pass: a `jvp` batched over the unit tangents, whose
+    primal is not batched and so is traced and evaluated once (`jax.jacfwd` drops it, so a caller
+    needing both would trace f twice; `jax.linearize` also gives both, at half as much tracing
+    time again)."""
+    jac = jax.vmap(lambda dx: jax.jvp(f, (x,), (dx,)), in_axes=1, out_axes=(None, 1))
+    return jac(jnp.eye(x.shape[0], dtype=x.dtype))
+
+
 def constraint_matrix(mech: Mechanism, q, qd, t, params):
     """A = ∂c/∂qd (m, s) at one state."""
     return jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd)
@@ -209,7 +218,7 @@ class VelocitySplit(eqx.Module):
         if self.m == 0:
             return place(v, v[:0], part)
         if not self.mech.nonlinear_constraints:
-            return self._linear(q, v, t, params, part)[0]
+            return self._linear_velocities(q, v, t, params, part)
 
         def c_dep(x):
             return self.mech.constraint(q, place(v, x, part), t, params)
@@ -231,6 +240,18 @@ class VelocitySplit(eqx.Module):
         _, beta = jax.jvp(lambda q_, t_: self.velocities(q_, v, t_, params, part), (q, t), (qd, jnp.ones_like(t)))
         return qd, B, beta
 
+    def _linear_terms(self, q, t, params, part: Partition):
+        """a = c(q, 0, t) and the columns A_I, A_D of A = ∂c/∂q̇ (one pass over c)."""
+        mech = self.mech
+        a, A = value_and_jacfwd(lambda u: mech.constraint(q, u, t, params), jnp.zeros((self.s,), q.dtype))
+        AI, AD = _columns(A, part, self.k)
+        return a, AI, AD
+
+    def _linear_velocities(self, q, v, t, params, part: Partition):
+        """q̇ from `A_D q̇_D = −(A_I v + a)` alone (no B or β to trace)."""
+        a, AI, AD = self._linear_terms(q, t, params, part)
+        return place(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)), part)
+
     def _linear(self, q, v, t, params, part: Partition):
         """For `A q̇ + a = 0`: `B = [I; −A_D⁻¹ A_I]` and `A_D β_D = −b` written out.
 
@@ -239,10 +260,7 @@ class VelocitySplit(eqx.Module):
         12.2k → 8.4k traced operations).
         """
         mech, k = self.mech, self.k
-        zero = jnp.zeros((self.s,), q.dtype)
-        a = mech.constraint(q, zero, t, params)
-        A = jax.jacfwd(lambda u: mech.constraint(q, u, t, params))(zero)
-        AI, AD = _columns(A, part, k)
+        a, AI, AD = self._linear_terms(q, t, params, part)
         # one elimination gives the dependent velocities and the columns of B
         X = solve_square(AD, -jnp.concatenate([(jnp.sum(AI * v, axis=1) + a)[:, None], AI], axis=1))
         qd = place(v, X[:, 0], part)

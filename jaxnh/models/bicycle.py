@@ -44,6 +44,7 @@ from .._holonomic import HolonomicMechanism
 from .._host import array_module
 from .._linearize import Linearization, linearize
 from .._status import is_traced
+from ..linalg import mm
 from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
 
 
@@ -136,46 +137,46 @@ def default_params() -> dict:
 def _frames(q, p):
     """Rear wheel centre, rear frame orientation, steer-axis point and front frame orientation."""
     x, y, psi, phi, theta, _, delta, _ = (q[i] for i in range(8))
-    lean = rot_z(psi) @ rot_x(phi)
-    RB = lean @ rot_y(theta)
+    lean = mm(rot_z(psi), rot_x(phi))
+    RB = mm(lean, rot_y(theta))
     rear = jnp.stack([x, y, jnp.zeros_like(x)]) - p["rR"] * lean[:, 2]  # the rear contact is (x, y, 0)
     axis = jnp.stack([jnp.sin(p["lam"]), jnp.zeros_like(p["lam"]), jnp.cos(p["lam"])])  # steer axis, pointing down
-    RH = RB @ rot_axis(axis, delta)
+    RH = mm(RB, rot_axis(axis, delta))
     # the steer axis meets the ground at (w + c, 0, 0) in the reference configuration
-    S = rear + RB @ jnp.stack([p["w"] + p["c"], jnp.zeros_like(p["w"]), p["rR"]])
+    S = rear + mm(RB, jnp.stack([p["w"] + p["c"], jnp.zeros_like(p["w"]), p["rR"]]))
     return rear, RB, S, RH
 
 
 def _front_point(S, RH, ref, p):
     """Inertial position of a front-frame point given by its reference coordinates."""
-    return S + RH @ (ref - jnp.stack([p["w"] + p["c"], jnp.zeros_like(p["w"]), jnp.zeros_like(p["w"])]))
+    return S + mm(RH, ref - jnp.stack([p["w"] + p["c"], jnp.zeros_like(p["w"]), jnp.zeros_like(p["w"])]))
 
 
 def _rear_wheel_pose(q, t, p):
     """Rear wheel centre and orientation (the contact is (x, y, 0) by construction)."""
-    lean = rot_z(q[2]) @ rot_x(q[ROLL])
+    lean = mm(rot_z(q[2]), rot_x(q[ROLL]))
     centre = jnp.stack([q[0], q[1], jnp.zeros_like(q[0])]) - p["rR"] * lean[:, 2]
-    return centre, lean @ rot_y(q[PITCH] + q[REAR])
+    return centre, mm(lean, rot_y(q[PITCH] + q[REAR]))
 
 
 def _front_wheel_pose(q, t, p):
     """Front wheel centre and orientation."""
     _, _, S, RH = _frames(q, p)
     zero = jnp.zeros_like(p["w"])
-    return _front_point(S, RH, jnp.stack([p["w"], zero, -p["rF"]]), p), RH @ rot_y(q[FRONT])
+    return _front_point(S, RH, jnp.stack([p["w"], zero, -p["rF"]]), p), mm(RH, rot_y(q[FRONT]))
 
 
 def _poses(q, t, p):
     rear, RB, S, RH = _frames(q, p)
     zero = jnp.zeros_like(p["w"])
-    rear_frame = rear + RB @ jnp.stack([p["xB"], zero, p["zB"] + p["rR"]])
+    rear_frame = rear + mm(RB, jnp.stack([p["xB"], zero, p["zB"] + p["rR"]]))
     fork = _front_point(S, RH, jnp.stack([p["xH"], zero, p["zH"]]), p)
     front = _front_point(S, RH, jnp.stack([p["w"], zero, -p["rF"]]), p)
     return [
-        (rear, RB @ rot_y(q[REAR])),
+        (rear, mm(RB, rot_y(q[REAR]))),
         (rear_frame, RB),
         (fork, RH),
-        (front, RH @ rot_y(q[FRONT])),
+        (front, mm(RH, rot_y(q[FRONT]))),
     ]
 
 
