@@ -44,7 +44,7 @@ from jaxtyping import Array, Float
 
 from ._checks import constraints_affine
 from ._export import one_shot_jit
-from ._mechanism import Mechanism
+from ._mechanism import _state_terms, Mechanism
 from ._status import is_traced
 from .equations.base import as_data, as_float, as_time
 from .equations.split import (
@@ -157,8 +157,7 @@ def linearize(
     t = as_time(t, q)
     params = as_data(params, q)
     m = mech.check_shapes(q, qd, t, params)  # raises, naming the argument, for wrong shapes
-    # concrete input: NaN/inf or a mass matrix that is not positive definite raise here
-    mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))
+    mech.check_finite(q, qd, t, params)  # NaN/inf raise here, naming the argument
     s = q.shape[0]
     coordinates = tuple(range(s)) if coordinates is None else _indices("coordinates", coordinates, s)
     speeds = resolve_independent(mech, None if speeds is None else _indices("speeds", speeds, s), s, m)
@@ -171,14 +170,17 @@ def linearize(
                 f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); "
                 f"got {accelerations.shape}"
             )
-    # concrete input has passed `check_values` above (which refuses constraints declared linear that
-    # are not): the compiled program then leaves out its own copy of that check
+    # concrete input: the program also returns the terms of `Mechanism.check_values` at (q, qd), which
+    # are judged on the host after it (a ValueError naming the problem), and leaves out its in-graph
+    # copy of the check for constraints declared linear that are not
     checked = not is_traced(q, qd, t, params)
     args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
     # compiled once per structure with XLA's cheapest settings; for jaxnh's own models (the bicycle)
     # kept on disk and shipped as an exported program (jaxnh._export); traced into a caller's jit
     out = _linearize(*args)
-    A, mass, damping, stiffness, rates, x0, quality = out
+    A, mass, damping, stiffness, rates, x0, quality, terms = out
+    if checked:  # a mass matrix that is not positive definite, constraints declared linear that are not, ...
+        mech._judge_state_terms(terms, constraint_rtol=float("inf"))
     if checked and speeds is not None and m and not float(quality) > 1e3 * float(jnp.finfo(q.dtype).eps):
         raise ValueError(
             f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
@@ -203,13 +205,15 @@ def linearize(
 
 def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked=False):
     """The compiled part of `linearize` (once per mechanism, shapes and options). `checked`: the
-    values were checked eagerly (`Mechanism.check_values`), so the in-graph affinity test is left out
-    and the quality of the given `speeds`' dependent block at (q, qd) is returned (last output; 1
-    otherwise) for `linearize` to refuse a singular one."""
+    values are concrete and checked on the host after the call, so the in-graph affinity test is
+    left out, and the last two outputs are the quality of the given `speeds`' dependent block at
+    (q, qd) (1 otherwise), for `linearize` to refuse a singular one, and `_state_terms` at (q, qd)
+    for `Mechanism._judge_state_terms` (None otherwise)."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
     split = VelocitySplit(mech, s, m)
     quality = jnp.ones((), q.dtype)
+    terms = _state_terms(mech, q, qd, t, params) if checked else None
     if checked and speeds is not None and m:
         quality = partition_quality(mech, q, qd, t, params, speeds, s - m)[0]
     if complete is not None:
@@ -275,7 +279,7 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
         # (the eager path raises a ValueError for this before, via `check_values`)
         affine = constraints_affine(mech, q, qd, t, params)
         out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
-    return (*out, quality)
+    return (*out, quality, terms)
 
 
 # evaluated a handful of times: XLA's cheapest settings
@@ -285,8 +289,8 @@ _linearize = one_shot_jit(_linearize_traced)
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
     """`d/dt ∂T/∂q̇ − ∂T/∂q = M q̈ + h` along (q̇, q̈), without forming M (s,)."""
 
-    def momentum(q_, qd_, t_):
-        return jax.grad(mech.kinetic, argnums=1)(q_, qd_, t_, params)
+    def gradients(q_, qd_, t_):  # ∂T/∂q and ∂T/∂q̇ from one reverse pass
+        return jax.grad(mech.kinetic, argnums=(0, 1))(q_, qd_, t_, params)
 
-    _, dp = jax.jvp(momentum, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
-    return dp - jax.grad(mech.kinetic, argnums=0)(q, qd, t, params)
+    (dT_dq, _), (_, dp) = jax.jvp(gradients, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
+    return dp - dT_dq

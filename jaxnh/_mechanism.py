@@ -256,7 +256,12 @@ class Mechanism(eqx.Module):
         self.check_finite(q, qd, t, params)
         if not all(_is_concrete(x) for x in (q, qd, t)) or not _params_concrete(params):
             return
-        M, c, A, H, near, allowed, on_manifold = (np.asarray(x) for x in _initial_state_terms(self, q, qd, t, params))
+        self._judge_state_terms(_initial_state_terms(self, q, qd, t, params), constraint_rtol=constraint_rtol)
+
+    def _judge_state_terms(self, terms, *, constraint_rtol: Optional[float] = None):
+        """The ValueErrors of `check_values`, from `_state_terms` evaluated at the state (by a
+        program of the caller's that computes them along with its own results)."""
+        M, c, A, H, near, allowed, on_manifold = (np.asarray(x) for x in terms)
         if not np.all(np.isfinite(M)):
             raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
         # Cholesky's accuracy does not depend on the scaling of the coordinates
@@ -311,11 +316,11 @@ class Mechanism(eqx.Module):
             )
 
 
-@one_shot_jit  # run once per check: XLA's cheapest settings
-def _initial_state_terms(mech: Mechanism, q, qd, t, params):
+def _state_terms(mech: Mechanism, q, qd, t, params):
     """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state, and the compiled checks'
-    verdicts on them (rows nearly dependent; each row's allowance for |c|; qd on the constraints),
-    in one program (compiled once per structure; the checks alone eagerly were some 40 programs)."""
+    verdicts on them (rows nearly dependent; each row's allowance for |c|; qd on the constraints):
+    what `Mechanism._judge_state_terms` needs, to be traced into one program (the checks alone
+    eagerly were some 40 programs)."""
     from ._checks import consistency_tolerance, consistent, nearly_dependent
 
     q, qd = jnp.asarray(q), jnp.asarray(qd)
@@ -335,6 +340,10 @@ def _initial_state_terms(mech: Mechanism, q, qd, t, params):
         consistency_tolerance(A, qd, a),
         consistent(A, c0, qd, a),
     )
+
+
+# run once per check: XLA's cheapest settings
+_initial_state_terms = one_shot_jit(_state_terms)
 
 
 _SHAPES_CHECKED: dict = {}
