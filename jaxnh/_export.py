@@ -13,9 +13,12 @@ dtypes of the arrays, the values captured by jaxnh's own local functions), the v
 of jax, jaxlib, diffrax, equinox, lineax and optimistix, the backend, and a digest of
 jaxnh's source files. A function from outside the jaxnh package (a user's kinetic
 energy, say) could change without changing anything the fingerprint sees (a helper it
-calls), so arguments holding one are never exported: such calls run as before. So are
-calls under a trace, and programs JAX cannot export (host callbacks); both fall back to
-the ordinary compiled path.
+calls), so arguments holding one are not exported, with one exception: a `Mechanism`,
+when the caller passes the state it is evaluated at (`mech_args`, as `simulate` does), is
+identified by the jaxprs of its functions there, with the values of the arrays they
+capture, which change with anything that changes what they compute
+(`_mechanism_fingerprint`). Calls under a trace, and programs JAX cannot export (host
+callbacks), fall back to the ordinary compiled path.
 
 Files live in `<cache folder>/exported/` (the folder jaxnh's compilation cache uses and
 checks: owned by the user, mode 0700), are written atomically and read only from there.
@@ -59,6 +62,10 @@ _MEMO: dict = {}
 """key → jitted call of the deserialized program (one load per process)."""
 _REFUSED: set = set()
 """keys that could not be exported (host callbacks, ...): not tried again in this process."""
+_KEYS: dict = {}
+"""`memo` key of a call → its program key ("" when it has none): fingerprints once per process."""
+_FAST: dict = {}
+"""`memo` key of a call → its compiled program: later calls skip the key and the lookups."""
 
 
 class _Unstable(Exception):
@@ -94,10 +101,17 @@ def _own(obj) -> bool:
     return module == "jaxnh" or module.startswith("jaxnh.")
 
 
+_MECH_ARGS: Optional[tuple] = None
+"""While `exported_call` fingerprints a call given `mech_args=(q, qd, t, params)`: those, so that a
+`Mechanism` is identified by the jaxprs of its functions at them (`_mechanism_fingerprint`)."""
+
+
 def _fingerprint(x, depth: int = 0) -> Any:
     """A nested tuple of strings that determines the traced program for these arguments."""
     if depth > 60:
         raise _Unstable("too deep")
+    if _MECH_ARGS is not None and _is_mechanism(x):
+        return _mechanism_fingerprint(x)
     if isinstance(x, jax.core.Tracer):
         raise _Unstable("traced")
     if isinstance(x, (jax.Array, np.ndarray)):
@@ -145,6 +159,69 @@ def _fingerprint(x, depth: int = 0) -> Any:
             tuple((f.name, _fingerprint(getattr(x, f.name, None), depth + 1)) for f in dataclasses.fields(x)),
         )
     raise _Unstable(f"unknown object {cls.__module__}.{cls.__qualname__}")
+
+
+def _is_mechanism(x) -> bool:
+    from ._mechanism import Mechanism
+
+    return isinstance(x, Mechanism)
+
+
+def _mechanism_fingerprint(mech) -> tuple:
+    """A mechanism identified by what its functions compute at the call's arguments: the jaxpr of
+    each (T, c, Q, V, g, S) at the shapes and dtypes of (q, qd, t, params), with the values of the
+    arrays it captures, and its other fields. A helper the functions call, a global they read, a
+    closure's values: any change in what they compute changes a jaxpr. Functions whose jaxpr holds
+    Python code that JAX does not trace (custom derivative rules, host callbacks) give no key."""
+    assert _MECH_ARGS is not None
+    q, qd, t, params = _MECH_ARGS
+    qdd = jax.ShapeDtypeStruct(q.shape, q.dtype)
+    signatures = {
+        "kinetic": (q, qd, t, params),
+        "constraints": (q, qd, t, params),
+        "forces": (q, qd, t, params),
+        "potential": (q, t, params),
+        "holonomic": (q, t, params),
+        "acceleration_energy": (q, qd, qdd, t, params),
+    }
+    parts = []
+    for f in dataclasses.fields(mech):
+        value = getattr(mech, f.name)
+        if f.name in signatures and value is not None:
+            parts.append((f.name, _jaxpr_fingerprint(value, signatures[f.name])))
+        else:
+            parts.append((f.name, _fingerprint(value, 1)))
+    cls = type(mech)
+    return ("mechanism", cls.__module__, cls.__qualname__, tuple(parts))
+
+
+def _jaxpr_fingerprint(fn, args) -> tuple:
+    try:
+        closed = jax.make_jaxpr(fn)(*args)
+    except Exception as e:  # noqa: BLE001 - the ordinary path will report it
+        raise _Unstable(f"not traceable: {type(e).__name__}") from None
+    _only_traced_code(closed.jaxpr)
+    consts = tuple(
+        (tuple(np.shape(c)), str(np.asarray(c).dtype), hashlib.sha256(np.ascontiguousarray(c).tobytes()).hexdigest())
+        for c in closed.consts
+    )
+    return ("jaxpr", str(closed.jaxpr), consts)
+
+
+def _only_traced_code(jaxpr) -> None:
+    """Refuse a jaxpr whose equations carry Python callables (custom_jvp/custom_vjp rules, host
+    callbacks): their code is not in the jaxpr's text, so a change in it would go unseen."""
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if "custom" in name or "callback" in name:
+            raise _Unstable(f"Python code in a jaxpr ({name})")
+        for value in eqn.params.values():
+            for v in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(v, "jaxpr", v)
+                if hasattr(inner, "eqns"):
+                    _only_traced_code(inner)
+                elif callable(v) or type(v).__name__ == "WrappedFun":
+                    raise _Unstable(f"Python code in a jaxpr ({name})")
 
 
 _STABLE_MODULES = ("diffrax", "equinox", "lineax", "optimistix", "jax", "numpy", "builtins")
@@ -212,11 +289,18 @@ def exported_call(
     *,
     name: str,
     compiler_options: Optional[dict] = None,
+    mech_args: Optional[tuple] = None,
+    memo: Any = None,
 ):
     """`fn(*args, **kwargs)` through an exported program kept on disk (or shipped), or None when
     that does not apply (the caller then runs its ordinary compiled path). `fn` must be a
     module-level jaxnh function; `args`, `kwargs` any pytrees of arrays and static data;
-    `compiler_options` are XLA's (e.g. `ONE_SHOT`)."""
+    `compiler_options` are XLA's (e.g. `ONE_SHOT`). With `mech_args=(q, qd, t, params)`, a
+    `Mechanism` among the arguments is identified by the jaxprs of its functions at those
+    (`_mechanism_fingerprint`), so that programs of users' own mechanisms are kept too. `memo`:
+    a hashable stand-in for the static arguments (the caller's own cache key), which spares
+    fingerprinting them again on later calls in this process."""
+    global _MECH_ARGS
     folder = _folder()
     if folder is None and not _shipped_readable():
         return None
@@ -226,15 +310,34 @@ def exported_call(
         return None  # under a transformation: the caller's program
     # Python numbers and other non-array leaves are baked in (and part of the key): only arrays are inputs
     dynamic = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
-    try:
-        fp = (_fingerprint(fn), _fingerprint(call_args))
-    except _Unstable as e:
-        if os.environ.get("JAXNH_DEBUG_EXPORT"):
-            print(f"jaxnh export: {name} not kept: {e}")
-        return None
-    key_text = repr((name, fp, _versions(), jax.default_backend(), _source_digest(), dynamic, compiler_options))
-    key = hashlib.sha256(key_text.encode()).hexdigest()[:40]
-    if key in _REFUSED:
+    memo_key = key = None
+    if memo is not None:
+        avals = tuple(
+            (x.shape, str(x.dtype), bool(getattr(x, "weak_type", False))) if d else None
+            for x, d in zip(leaves, dynamic)
+        )
+        memo_key = (name, memo, treedef, avals)
+        fast = _FAST.get(memo_key)
+        if fast is not None:  # a later call in this process: straight to the compiled program
+            return fast(*[x for x, d in zip(leaves, dynamic) if d])
+        key = _KEYS.get(memo_key)
+    if key is None:
+        try:
+            _MECH_ARGS = mech_args
+            fp = (_fingerprint(fn), _fingerprint(call_args))
+        except _Unstable as e:
+            if os.environ.get("JAXNH_DEBUG_EXPORT"):
+                print(f"jaxnh export: {name} not kept: {e}")
+            if memo_key is not None:
+                _KEYS[memo_key] = ""
+            return None
+        finally:
+            _MECH_ARGS = None
+        key_text = repr((name, fp, _versions(), jax.default_backend(), _source_digest(), dynamic, compiler_options))
+        key = hashlib.sha256(key_text.encode()).hexdigest()[:40]
+        if memo_key is not None:
+            _KEYS[memo_key] = key
+    if key == "" or key in _REFUSED:
         return None
     # committed to one device, so that the jitted call compiles once (jit keys on committedness)
     inputs = jax.device_put([jax.numpy.asarray(x) for x, d in zip(leaves, dynamic) if d], jax.devices()[0])
@@ -275,10 +378,10 @@ def exported_call(
                         print(f"jaxnh export: {name} not serialisable:", type(e).__name__, str(e)[:500])
                 else:
                     _save(os.path.join(target, file), data)
-        call = jax.jit(exp.call)
-        if compiler_options:
-            call = call.lower(*inputs).compile(compiler_options)
+        call = jax.jit(exp.call).lower(*inputs).compile(compiler_options)
         _MEMO[key] = call
+    if memo_key is not None:
+        _FAST[memo_key] = call
     return call(*inputs)
 
 
@@ -366,6 +469,8 @@ def build_shipped() -> dict:
             os.remove(os.path.join(SHIPPED, f))
     _MEMO.clear()
     _REFUSED.clear()
+    _KEYS.clear()
+    _FAST.clear()
     _BUILDING = True
     try:
         for job, _ in SHIPPED_JOBS.values():

@@ -363,9 +363,12 @@ def simulate(
     elif fast is not None:  # the common case: one jax.jit call, no filtering of arguments per call
         assert isinstance(stepsize_controller, diffrax.PIDController)
         tolerances = (stepsize_controller.rtol, stepsize_controller.atol)
-        sol = _run_fast(
-            fast, params, q0, qd0, ts, tolerances, None if dt0 is None else jnp.asarray(dt0, dtype=q0.dtype)
-        )
+        dt0_ = None if dt0 is None else jnp.asarray(dt0, dtype=q0.dtype)
+        sol = None
+        if not traced and saveat is None and event is None and progress_meter is None:
+            sol = _run_exported(fast, params, q0, qd0, ts, tolerances, dt0_)
+        if sol is None:
+            sol = _run_fast(fast, params, q0, qd0, ts, tolerances, dt0_)
     else:
         sol = _call_run(static, params, q0, qd0, ts, stepsize_controller, dt0)
     if throw and not traced and np.ndim(sol.status._value) == 0 and int(np.asarray(sol.status._value)) != 0:
@@ -428,6 +431,47 @@ def _run_fast(static, params, q0, qd0, ts, tol, dt0):
     """
     controller = diffrax.PIDController(rtol=tol[0], atol=tol[1])
     return _call_run(static, params, q0, qd0, ts, controller, dt0)
+
+
+def _run_arrays(static, params, q0, qd0, ts, tol, dt0):
+    """`_run_fast`'s solution as a dict of arrays (what an exported program can return)."""
+    controller = diffrax.PIDController(rtol=tol[0], atol=tol[1])
+    sol = _call_run(static, params, q0, qd0, ts, controller, dt0, jitted=False)
+    out = {k: getattr(sol, k) for k in ("ts", "q", "qd", "multipliers", "energy", "residual", "stats")}
+    out["status"] = sol.status._value
+    return out
+
+
+def _run_exported(static, params, q0, qd0, ts, tol, dt0) -> Optional[Solution]:
+    """The default scene through a program kept on disk (`jaxnh._export`): a second process loads
+    it instead of tracing and lowering it (0.3 s of a small simulation's first call). The user's
+    mechanism is identified by the jaxprs of its functions at (q0, qd0, ts[0], params). None when
+    that does not apply (anything the key cannot identify): the caller compiles as before."""
+    from ._export import exported_call
+
+    mech = static[0]
+    out = exported_call(
+        _run_arrays,
+        (static, params, q0, qd0, ts, tol, dt0),
+        name="simulate",
+        mech_args=(q0, qd0, jax.ShapeDtypeStruct((), ts.dtype), params),
+        memo=static,
+    )
+    if out is None:
+        return None
+    # the item the program gave (equinox types an Enumeration's items as the Enumeration itself)
+    status: Any = type(STATUS.successful)(out["status"], STATUS)  # pyright: ignore[reportCallIssue]
+    return Solution(
+        ts=out["ts"],
+        q=out["q"],
+        qd=out["qd"],
+        multipliers=out["multipliers"],
+        energy=out["energy"],
+        residual=out["residual"],
+        stats=out["stats"],
+        status=status,
+        names=mech.coordinate_names(q0.shape[0]),
+    )
 
 
 @functools.lru_cache(maxsize=64)

@@ -3,13 +3,14 @@ per program structure, a damaged file rebuilt, and nothing kept for what the key
 (functions from outside jaxnh, closures, traced calls, the cache turned off)."""
 
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxnh  # noqa: F401  (64-bit mode)
+import jaxnh as nh  # 64-bit mode
 from jaxnh import _cache, _export
 from jaxnh.linalg import solve_spd
 
@@ -21,6 +22,8 @@ def folder(tmp_path, monkeypatch):
     monkeypatch.setattr(_cache, "_active", str(base))
     monkeypatch.setattr(_export, "_MEMO", {})
     monkeypatch.setattr(_export, "_REFUSED", set())
+    monkeypatch.setattr(_export, "_KEYS", {})
+    monkeypatch.setattr(_export, "_FAST", {})
     return base / "exported"
 
 
@@ -140,3 +143,100 @@ def test_one_shot_jit_under_transformations(folder):
     np.testing.assert_allclose(np.asarray(jax.vmap(f, in_axes=(None, 0))(M, bs))[1], 2 * np.asarray(x), rtol=1e-13)
     g = jax.grad(lambda b: f(M, b).sum())(b)
     np.testing.assert_allclose(np.asarray(g), np.linalg.solve(np.asarray(M).T, np.ones(3)), rtol=1e-12)
+
+
+# --- users' own mechanisms: kept under the jaxprs of their functions --------------------------
+
+HALF = 0.5
+
+
+def half():
+    return HALF
+
+
+def kinetic(q, qd, t, p):
+    return half() * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2)
+
+
+def rolling(q, qd, t, p):
+    return jnp.stack([(1.0 + 0.4 * jnp.sin(jnp.pi * t)) * qd[0] - qd[1]])
+
+
+def torques(q, qd, t, p):
+    return jnp.stack([p["M1"], p["M2"]])
+
+
+P = {"J1": jnp.asarray(0.02), "J2": jnp.asarray(0.05), "M1": jnp.asarray(0.3), "M2": jnp.asarray(-0.1)}
+TS = jnp.linspace(0.0, 2.0, 5)
+
+
+def run(mech, exported=True, monkeypatch=None):
+    from jaxnh import _simulate
+
+    if not exported:
+        assert monkeypatch is not None
+        with monkeypatch.context() as m:
+            m.setattr(_simulate, "_run_exported", lambda *a: None)
+            return nh.simulate(mech, P, jnp.zeros(2), jnp.array([2.0, 2.0]), TS, record=("energy",))
+    return nh.simulate(mech, P, jnp.zeros(2), jnp.array([2.0, 2.0]), TS, record=("energy",))
+
+
+def new_process(monkeypatch):
+    """What a new process starts without: jaxnh's loaded programs and keys, and JAX's caches of
+    traces (within one process JAX, like jaxnh, reuses a trace of the same function)."""
+    monkeypatch.setattr(_export, "_MEMO", {})
+    monkeypatch.setattr(_export, "_KEYS", {})
+    monkeypatch.setattr(_export, "_FAST", {})
+    jax.clear_caches()
+
+
+def test_users_mechanism_kept_under_what_its_functions_compute(folder, monkeypatch):
+    """A simulation of a user's mechanism is kept (no second trace in a later process, the same
+    answer), and any change in what its functions compute is another program: a helper it calls,
+    a global it reads, an array it captures. Functions holding Python code that JAX does not
+    trace (a custom derivative rule) are not kept; their simulations run as before."""
+    mech = nh.Mechanism(kinetic, constraints=rolling, forces=torques)
+    first = run(mech)
+    assert len(os.listdir(folder)) == 1
+    new_process(monkeypatch)
+    with monkeypatch.context() as m:
+        m.setattr(jax.export, "export", lambda *a, **k: pytest.fail("traced again"))
+        again = run(mech)
+    np.testing.assert_array_equal(np.asarray(again.q), np.asarray(first.q))
+    assert again.success and len(os.listdir(folder)) == 1
+    reference = run(mech, exported=False, monkeypatch=monkeypatch)
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(reference)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    # the same functions, but a global their helper reads has changed: another program, another answer
+    new_process(monkeypatch)
+    monkeypatch.setattr(sys.modules[__name__], "HALF", 0.25)
+    changed = run(mech)
+    assert len(os.listdir(folder)) == 2
+    ref = run(mech, exported=False, monkeypatch=monkeypatch)
+    np.testing.assert_array_equal(np.asarray(changed.q), np.asarray(ref.q))
+    assert not np.allclose(np.asarray(changed.q), np.asarray(first.q))  # half the inertia: faster
+    monkeypatch.setattr(sys.modules[__name__], "HALF", 0.5)
+
+    # an array captured by a closure: its values are part of the key
+    for torque in (0.3, 0.6):
+        M = jnp.asarray([torque, -0.1])
+        new_process(monkeypatch)
+        out = run(nh.Mechanism(kinetic, constraints=rolling, forces=lambda q, qd, t, p, M=M: M))
+        ref = run(nh.Mechanism(kinetic, constraints=rolling, forces=lambda q, qd, t, p, M=M: M), False, monkeypatch)
+        np.testing.assert_array_equal(np.asarray(out.q), np.asarray(ref.q))
+    assert len(os.listdir(folder)) == 4
+
+    @jax.custom_jvp
+    def square(x):
+        return x**2
+
+    square.defjvp(lambda x, dx: (square(x[0]), 2 * x[0] * dx[0]))
+
+    def kinetic_rule(q, qd, t, p):
+        return 0.5 * (p["J1"] * square(qd[0]) + p["J2"] * square(qd[1]))
+
+    new_process(monkeypatch)
+    out = run(nh.Mechanism(kinetic_rule, constraints=rolling, forces=torques))
+    assert len(os.listdir(folder)) == 4  # not kept
+    np.testing.assert_allclose(np.asarray(out.q), np.asarray(first.q), rtol=1e-12)
