@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._checks import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
+from ._export import SIMULATE_OPTIONS
 from ._mechanism import Mechanism
 from ._sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity, lean_compatible, LeanIntegrator
 from ._solution import DenseMotion, Solution
@@ -421,8 +422,7 @@ def _fast_static(static, default_controller: bool, params):
     return static
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _run_fast(static, params, q0, qd0, ts, tol, dt0):
+def _run_default(static, params, q0, qd0, ts, tol, dt0):
     """`_run` with the default step control, as one `jax.jit` program keyed by `static`.
 
     `eqx.filter_jit` splits every argument into arrays and the rest on every call
@@ -431,6 +431,17 @@ def _run_fast(static, params, q0, qd0, ts, tol, dt0):
     """
     controller = diffrax.PIDController(rtol=tol[0], atol=tol[1])
     return _call_run(static, params, q0, qd0, ts, controller, dt0)
+
+
+# called with concrete values: compiled with jaxnh's options (`SIMULATE_OPTIONS`); under vmap or
+# grad without them (JAX refuses compiler options on a jit that grad transforms)
+_run_fast_concrete = jax.jit(_run_default, static_argnums=0, compiler_options=SIMULATE_OPTIONS)
+_run_fast_traced = jax.jit(_run_default, static_argnums=0)
+
+
+def _run_fast(static, params, q0, qd0, ts, tol, dt0):
+    traced = is_traced(params, q0, qd0, ts, tol, dt0)
+    return (_run_fast_traced if traced else _run_fast_concrete)(static, params, q0, qd0, ts, tol, dt0)
 
 
 def _run_arrays(static, params, q0, qd0, ts, tol, dt0):
@@ -454,6 +465,7 @@ def _run_exported(static, params, q0, qd0, ts, tol, dt0) -> Optional[Solution]:
         _run_arrays,
         (static, params, q0, qd0, ts, tol, dt0),
         name="simulate",
+        compiler_options=SIMULATE_OPTIONS,
         mech_args=(q0, qd0, jax.ShapeDtypeStruct((), ts.dtype), params),
         memo=static,
     )
