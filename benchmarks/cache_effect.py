@@ -291,9 +291,10 @@ def section(R: dict | None) -> list:
         ]
     L += [
         "",
-        f"Of the warm variator run, {m['variator_warm_call']:.2f} s is the first `simulate` (tracing the "
-        "program, lowering it and loading its compiled form from the cache); the rest is Python and `import "
-        "jaxnh` (JAX, diffrax and equinox are most of it).",
+        f"Of the warm variator run, {m['variator_warm_call']:.2f} s is the first `simulate` (identifying the "
+        "mechanism by the jaxprs of its functions, loading the program the first process exported, lowering "
+        "it and loading its compiled form from the cache); the rest is Python and `import jaxnh` (JAX, "
+        "diffrax and equinox are most of it).",
         "",
     ]
     return L

@@ -353,6 +353,15 @@ def jax_contenders(quick: bool) -> dict:
     return out
 
 
+def options_of(name: str):
+    """XLA options for a contender: jaxnh's loops (the lean loop, diffrax with jaxnh's tableau) are
+    compiled as `simulate` compiles them (`jaxnh._export.SIMULATE_OPTIONS`); the bare loop and
+    diffrax alone as a user's own `jax.jit` would."""
+    from jaxnh._export import SIMULATE_OPTIONS
+
+    return dict(SIMULATE_OPTIONS) if name.startswith("lean") or "jaxnh" in name else None
+
+
 def error_of(ys, ref) -> float:
     ys = np.asarray(ys)
     return float(np.max(np.abs(ys - ref))) if np.all(np.isfinite(ys)) else float("inf")
@@ -399,7 +408,7 @@ def measure(quick: bool) -> dict:
     with jax.default_device(CPU):
         for name, f in jax_contenders(quick).items():
             g = jax.jit(f)
-            compiled = g.lower(C.f64(W0), C.f64(1e-8), C.f64(1e-10)).compile()
+            compiled = g.lower(C.f64(W0), C.f64(1e-8), C.f64(1e-10)).compile(options_of(name))
             m = match(lambda rtol: compiled(C.f64(W0), C.f64(rtol), C.f64(rtol / 100)), ref)
             C.log(f"[lean_loop] {name}: {m}")
             single[name] = m
@@ -461,7 +470,7 @@ def measure(quick: bool) -> dict:
                 g = jax.jit(jax.vmap(f, in_axes=(0, None, None)))
                 rt = single[name]["rtol"]
                 args = (jax.device_put(w0s, dev), C.f64(rt), C.f64(rt / 100))
-                compiled = g.lower(*args).compile()
+                compiled = g.lower(*args).compile(options_of(name))
                 ys, steps = C.block(compiled(*args))
                 err = max(error_of(ys[i], refs[i]) for i in refs)
                 key = name if dev_name == "CPU" else f"{name} [GPU]"
@@ -594,7 +603,9 @@ def section(R: dict | None) -> list:
         f"rtol (1/8-decade grid, atol = rtol/100) reaching error ≤ {c['target_error']:g}. Eq. (9) by hand in every "
         "row except the last JAX one. CPU times, medians over interleaved rounds "
         "(`python -m benchmarks.lean_loop`). Per step: time / step attempts. The bare loop is the reference of "
-        "the ‘within 2×’ target (same tableau); numba is the limit.",
+        "the ‘within 2×’ target (same tableau); numba is the limit. jaxnh's loops (the lean loop, diffrax with "
+        "jaxnh's DOP853) are compiled with the XLA options `simulate` uses (`jaxnh._export.SIMULATE_OPTIONS`), "
+        "diffrax alone and the bare loop with JAX's defaults, as a user's own `jax.jit` would.",
         "",
     ]
     S_, B_ = R["single"], R["batch"]
