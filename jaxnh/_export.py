@@ -310,9 +310,6 @@ def exported_call(
     a hashable stand-in for the static arguments (the caller's own cache key), which spares
     fingerprinting them again on later calls in this process."""
     global _MECH_ARGS
-    folder = _folder()
-    if folder is None and not _shipped_readable():
-        return None
     call_args = (args, {} if kwargs is None else kwargs)
     leaves, treedef = jax.tree_util.tree_flatten(call_args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
@@ -322,13 +319,16 @@ def exported_call(
     memo_key = key = None
     if memo is not None:
         avals = tuple(
-            (x.shape, str(x.dtype), bool(getattr(x, "weak_type", False))) if d else None
-            for x, d in zip(leaves, dynamic)
+            (x.shape, x.dtype, getattr(x, "weak_type", False)) if d else None for x, d in zip(leaves, dynamic)
         )
         memo_key = (name, memo, treedef, avals)
         fast = _FAST.get(memo_key)
         if fast is not None:  # a later call in this process: straight to the compiled program
             return fast(*[x for x, d in zip(leaves, dynamic) if d])
+    folder = _folder()
+    if folder is None and not _shipped_readable():
+        return None
+    if memo_key is not None:
         key = _KEYS.get(memo_key)
     if key is None:
         try:
@@ -348,8 +348,7 @@ def exported_call(
             _KEYS[memo_key] = key
     if key == "" or key in _REFUSED:
         return None
-    # committed to one device, so that the jitted call compiles once (jit keys on committedness)
-    inputs = jax.device_put([jax.numpy.asarray(x) for x, d in zip(leaves, dynamic) if d], jax.devices()[0])
+    inputs = [x for x, d in zip(leaves, dynamic) if d]
     call = _MEMO.get(key)
     if call is None:
         file = f"{name}-{key}.bin"
@@ -372,7 +371,7 @@ def exported_call(
                 return fn(*a, **kw)
 
             try:
-                exp = jax.export.export(jax.jit(flat))(*(jax.ShapeDtypeStruct(x.shape, x.dtype) for x in inputs))
+                exp = jax.export.export(jax.jit(flat))(*(jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in inputs))
             except Exception as e:  # noqa: BLE001 - not exportable (host callbacks, ...): the ordinary path
                 if os.environ.get("JAXNH_DEBUG_EXPORT"):
                     print("jaxnh export refused:", type(e).__name__, str(e)[:2000])
@@ -387,7 +386,9 @@ def exported_call(
                         print(f"jaxnh export: {name} not serialisable:", type(e).__name__, str(e)[:500])
                 else:
                     _save(os.path.join(target, file), data)
-        call = jax.jit(exp.call).lower(*inputs).compile(compiler_options)
+        # a jitted call (JAX's fast dispatch on later calls; compiled on the first, from the
+        # persistent cache when it is there)
+        call = jax.jit(exp.call, compiler_options=compiler_options)
         _MEMO[key] = call
     if memo_key is not None:
         _FAST[memo_key] = call

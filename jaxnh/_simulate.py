@@ -471,9 +471,14 @@ def _run_exported(static, params, q0, qd0, ts, tol, dt0) -> Optional[Solution]:
     )
     if out is None:
         return None
+    leaves = jax.tree_util.tree_leaves(out)
+    shape = _SOLUTION_SHAPES.get(static)
+    if shape is not None:  # later calls: the structure found on the first, without the constructor
+        treedef, order = shape
+        return jax.tree_util.tree_unflatten(treedef, [leaves[i] for i in order])
     # the item the program gave (equinox types an Enumeration's items as the Enumeration itself)
     status: Any = type(STATUS.successful)(out["status"], STATUS)  # pyright: ignore[reportCallIssue]
-    return Solution(
+    sol = Solution(
         ts=out["ts"],
         q=out["q"],
         qd=out["qd"],
@@ -484,6 +489,15 @@ def _run_exported(static, params, q0, qd0, ts, tol, dt0) -> Optional[Solution]:
         status=status,
         names=mech.coordinate_names(q0.shape[0]),
     )
+    sol_leaves, treedef = jax.tree_util.tree_flatten(sol)
+    where = {id(x): i for i, x in enumerate(leaves)}
+    if all(id(x) in where for x in sol_leaves) and len(sol_leaves) == len(leaves):
+        _SOLUTION_SHAPES[static] = (treedef, [where[id(x)] for x in sol_leaves])
+    return sol
+
+
+_SOLUTION_SHAPES: dict = {}
+"""static options → (Solution's treedef, the order of its leaves among the exported program's)."""
 
 
 @functools.lru_cache(maxsize=64)
