@@ -29,7 +29,7 @@ from ._cache import setup_compilation_cache  # noqa: E402
 
 setup_compilation_cache()
 
-from . import equations, linalg, models, profiles, rigid, solvers  # noqa: E402
+from . import equations, linalg, profiles, rigid, solvers  # noqa: E402
 from ._consistent import consistent_velocities  # noqa: E402
 from ._holonomic import HolonomicMechanism  # noqa: E402
 from ._linearize import Linearization, linearize  # noqa: E402
@@ -52,14 +52,15 @@ from .equations import (  # noqa: E402
 )
 
 
-# Identification and design (optax, plotting helpers) are imported on first use: a script that
-# only simulates does not pay for them (0.1 s of the import).
+# Identification and design (optax, plotting helpers) and the built-in models are imported on first
+# use: a script that only simulates does not pay for them (0.1 s of the import).
 if TYPE_CHECKING:
-    from . import design, identify
+    from . import design, identify, models
     from .identify import fit, FitResult, Record
     from .identify.spec import FitSpec
 
 _LAZY = {
+    "models": ("jaxnh.models", None),  # the built-in models: 25 ms of the import
     "design": ("jaxnh.design", None),
     "identify": ("jaxnh.identify", None),
     "fit": ("jaxnh.identify", "fit"),
