@@ -314,8 +314,9 @@ def exported_call(
     leaves, treedef = jax.tree_util.tree_flatten(call_args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return None  # under a transformation: the caller's program
-    # Python numbers and other non-array leaves are baked in (and part of the key): only arrays are inputs
-    dynamic = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
+    # Python numbers and other non-array leaves are baked in (and part of the key); arrays and NumPy
+    # scalars are inputs (as jax.jit treats them), which a `memo`ised call must see, value by value
+    dynamic = [isinstance(x, (jax.Array, np.ndarray, np.generic)) for x in leaves]
     memo_key = key = None
     if memo is not None:
         avals = tuple(

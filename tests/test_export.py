@@ -12,7 +12,7 @@ import pytest
 
 import jaxnh as nh  # 64-bit mode
 from jaxnh import _cache, _export
-from jaxnh.linalg import solve_spd
+from jaxnh.linalg import mm, solve_spd
 
 
 @pytest.fixture
@@ -240,3 +240,13 @@ def test_users_mechanism_kept_under_what_its_functions_compute(folder, monkeypat
     out = run(nh.Mechanism(kinetic_rule, constraints=rolling, forces=torques))
     assert len(os.listdir(folder)) == 4  # not kept
     np.testing.assert_allclose(np.asarray(out.q), np.asarray(first.q), rtol=1e-12)
+
+
+def test_memoised_calls_take_numpy_scalars_as_inputs(folder):
+    """With `memo` (a caller's own static key), a later call with another NumPy scalar is another
+    input to the same program, not a stale baked-in constant."""
+    b = jnp.arange(1.0, 4.0)
+    for scale in (np.float64(1.0), np.float64(3.0)):
+        out = _export.exported_call(mm, (scale, b), name="mm", memo="the same options")
+        np.testing.assert_allclose(float(out), 6.0 * float(scale), rtol=1e-15)
+    assert len(os.listdir(folder)) == 1
