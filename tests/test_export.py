@@ -248,5 +248,6 @@ def test_memoised_calls_take_numpy_scalars_as_inputs(folder):
     b = jnp.arange(1.0, 4.0)
     for scale in (np.float64(1.0), np.float64(3.0)):
         out = _export.exported_call(mm, (scale, b), name="mm", memo="the same options")
+        assert out is not None
         np.testing.assert_allclose(float(out), 6.0 * float(scale), rtol=1e-15)
     assert len(os.listdir(folder)) == 1
