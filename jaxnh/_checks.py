@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from ._status import STATUS
-from .linalg import cholesky, pivot_rtol
+from .linalg import cholesky, pivot_rtol, value_and_jacfwd
 
 
 __all__ = [
@@ -83,8 +83,7 @@ def initial_checks(form, q, qd, t, params):
         def c(v):
             return mech.constraint(q, v, t, params)
 
-        c0 = c(qd)
-        A = jax.jacfwd(c)(qd)
+        c0, A = value_and_jacfwd(c, qd)
         a = c(jnp.zeros_like(qd))
         finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)

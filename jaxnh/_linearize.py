@@ -55,10 +55,9 @@ from .equations.split import (
     partition_quality,
     pick,
     resolve_independent,
-    value_and_jacfwd,
     VelocitySplit,
 )
-from .linalg import mm, solve_spd
+from .linalg import mm, solve_spd, value_and_jacfwd
 
 
 __all__ = ["Linearization", "linearize"]

@@ -322,6 +322,7 @@ def _state_terms(mech: Mechanism, q, qd, t, params):
     what `Mechanism._judge_state_terms` needs, to be traced into one program (the checks alone
     eagerly were some 40 programs)."""
     from ._checks import consistency_tolerance, consistent, nearly_dependent
+    from .linalg import value_and_jacfwd
 
     q, qd = jnp.asarray(q), jnp.asarray(qd)
     M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
@@ -329,7 +330,7 @@ def _state_terms(mech: Mechanism, q, qd, t, params):
     def c(v):
         return mech.constraint(q, v, t, params)
 
-    c0, A = c(qd), jax.jacfwd(c)(qd)
+    c0, A = value_and_jacfwd(c, qd)
     a = c0 - A @ qd
     return (
         M,

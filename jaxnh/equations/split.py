@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from .._mechanism import check_independent, Mechanism
-from ..linalg import solve_square
+from ..linalg import solve_square, value_and_jacfwd
 
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
@@ -47,15 +47,6 @@ more than 4× worse conditioned than the best one; the switch lands on a block
 with ratio 1, so the band [0.25, 1] keeps the choice from chattering."""
 
 Partition = Union[tuple, jax.Array]
-
-
-def value_and_jacfwd(f, x):
-    """f(x) and ∂f/∂x (by forward mode) in one pass: a `jvp` batched over the unit tangents, whose
-    primal is not batched and so is traced and evaluated once (`jax.jacfwd` drops it, so a caller
-    needing both would trace f twice; `jax.linearize` also gives both, at half as much tracing
-    time again)."""
-    jac = jax.vmap(lambda dx: jax.jvp(f, (x,), (dx,)), in_axes=1, out_axes=(None, 1))
-    return jac(jnp.eye(x.shape[0], dtype=x.dtype))
 
 
 def constraint_matrix(mech: Mechanism, q, qd, t, params):
@@ -225,7 +216,8 @@ class VelocitySplit(eqx.Module):
 
         x = jnp.zeros((self.m,), v.dtype)
         for _ in range(NEWTON_ITERATIONS):
-            x = x - solve_square(jax.jacfwd(c_dep)(x), c_dep(x))
+            value, jacobian = value_and_jacfwd(c_dep, x)
+            x = x - solve_square(jacobian, value)
         return place(v, x, part)
 
     def velocities_and_rates(self, q, v, t, params, part: Partition):

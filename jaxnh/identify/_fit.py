@@ -24,6 +24,7 @@ from .._export import one_shot_jit
 from .._mechanism import Mechanism
 from .._sensitivity import FORWARD_MAX_PARAMETERS
 from ..equations.split import choose_independent
+from ..linalg import value_and_jacfwd
 from .data import noise_level, Record
 from .diagnostics import analyse, Identifiability, lack_of_fit, LackOfFit
 from .parameters import Parametrisation, resolve
@@ -238,7 +239,7 @@ def _band_jacobian(par, theta, ts, fn):
         p = par.unpack(th)
         return jax.vmap(lambda t: fn(p, t))(ts)
 
-    return g(theta), jax.jacfwd(g)(theta)
+    return value_and_jacfwd(g, theta)
 
 
 def _as_list(x):
@@ -264,7 +265,7 @@ def _velocity_map(problem: Problem, q, t, params):
         return problem.split().velocities(q, v, t, params, problem.independent)[jnp.asarray(problem.observed)]
 
     v0 = jnp.zeros(len(problem.independent), q.dtype)
-    return f(v0), jax.jacfwd(f)(v0)
+    return value_and_jacfwd(f, v0)
 
 
 @one_shot_jit
