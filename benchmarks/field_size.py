@@ -1,8 +1,10 @@
 """Size and cost of one vector-field evaluation, per formulation (issue 16, item 3).
 
 For the variator (and the generic s = 10, m = 3 mechanism of benchmarks/problems.py),
-each formulation's vector field `formulation(...).vector_field(t, y, params)` —
-"lagrange", "appell", "substituted" — and the hand-written one (eq. (9) for the
+each formulation's vector field as `simulate` integrates it — "lagrange", "appell",
+"substituted": `formulation(...).vector_field(t, y, params)` flattened to scalar
+operations when it is small (`jaxnh._scalarize`; for the variator also "appell, not
+flattened", the same field as traced) — and the hand-written one (eq. (9) for the
 variator; Lagrange's equations written out with a dense solve for the generic
 mechanism) is measured alone:
 
@@ -38,6 +40,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from jaxnh._lean import lean_solve
+from jaxnh._scalarize import scalarized
 from jaxnh.equations import formulation
 
 from . import problems as PB
@@ -78,11 +81,15 @@ def fields(problem: str):
     for method in methods:
         form = formulation(mech, method, q0, qd0, ts[0], p, None if method == "lagrange" else ind)
         y0, unravel = ravel_pytree(form.state(q0, qd0, ts[0], p))
-        out[method] = (
-            (lambda form, unravel: lambda t, y, p: ravel_pytree(form.vector_field(t, unravel(y), p))[0])(form, unravel),
-            y0,
-            p,
-        )
+        # as simulate integrates it: flattened to scalar operations when small (jaxnh._scalarize)
+        for name, vf in ((method, scalarized(form.vector_field)), (f"{method}, not flattened", form.vector_field)):
+            if name.endswith("not flattened") and method != "appell":
+                continue
+            out[name] = (
+                (lambda vf, unravel: lambda t, y, p: ravel_pytree(vf(t, unravel(y), p))[0])(vf, unravel),
+                y0,
+                p,
+            )
     y0, unravel = ravel_pytree(hand_state)
     out["hand"] = ((lambda unravel: lambda t, y, p: ravel_pytree(hand(t, unravel(y), p))[0])(unravel), y0, p)
     return out, ts

@@ -100,7 +100,9 @@ def eq9(t, y, p):
 
 
 def appell_field():
-    """jaxnh's derived Appell vector field on the raveled state ((phi1, phi2), (phi1',))."""
+    """jaxnh's derived Appell vector field on the raveled state ((phi1, phi2), (phi1',)), as
+    `simulate` integrates it (flattened to scalar operations: `jaxnh._scalarize`)."""
+    from jaxnh._scalarize import scalarized
     from jaxnh.equations import formulation
 
     q0, qd0 = jnp.zeros(2), jnp.array([W0, 1.5 * W0])
@@ -108,7 +110,7 @@ def appell_field():
     _, unravel = ravel_pytree(form.state(q0, qd0, TS[0], P))
 
     def vf(t, y, p):
-        return ravel_pytree(form.vector_field(t, unravel(y), p))[0]
+        return ravel_pytree(scalarized(form.vector_field)(t, unravel(y), p))[0]
 
     return vf
 

@@ -23,6 +23,7 @@ import numpy as np
 from ._checks import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
 from ._export import SIMULATE_OPTIONS
 from ._mechanism import Mechanism
+from ._scalarize import scalarized
 from ._sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity, lean_compatible, LeanIntegrator
 from ._solution import DenseMotion, Solution
 from ._status import error_for, is_traced, raise_in_graph, STATUS, under_jit
@@ -130,7 +131,8 @@ def field(t, y, args):
     zero, so the solve finishes in a few steps instead of wandering.
     """
     form, params, ok = args
-    dy = form.vector_field(t, y, params)
+    # small fields as one graph of scalar operations (fewer kernels; see jaxnh._scalarize)
+    dy = scalarized(form.vector_field)(t, y, params)
     return jax.tree_util.tree_map(lambda d, x: jnp.where(ok, d, 0).astype(x.dtype), dy, y)
 
 

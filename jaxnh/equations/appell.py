@@ -49,7 +49,7 @@ from .split import (
     SWITCH_BELOW,
     VelocitySplit,
 )
-from .terms import mass_and_velocity_terms
+from .terms import projected_terms
 
 
 class Appell(Formulation):
@@ -111,9 +111,8 @@ class Appell(Formulation):
         qd, B, beta = self.split.velocities_and_rates(q, v, t, params, part)
         Q = mech.generalized_forces(q, qd, t, params)
         if mech.acceleration_energy is None:
-            M, h = mass_and_velocity_terms(mech, q, qd, t, params)
-            K = mm(B.T, mm(M, B))
-            rhs = mm(B.T, Q - h - mm(M, beta))
+            K, r = projected_terms(mech, q, qd, t, params, B, beta)
+            rhs = mm(B.T, Q) - r
         else:
             dS = jax.grad(mech.acceleration_energy, argnums=2)
             g0, H = jax.linearize(lambda a: dS(q, qd, a, t, params), beta)
