@@ -216,7 +216,7 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
     quality = jnp.ones((), q.dtype)
     terms = _state_terms(mech, q, qd, t, params) if checked else None
     if checked and speeds is not None and m:
-        quality = partition_quality(mech, q, qd, t, params, speeds, s - m)[0]
+        quality = partition_quality(mech, q, qd, t, params, speeds, s - m, A=terms[2] if terms else None)[0]
     if complete is not None:
         q = complete(q, t, params)
     part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]

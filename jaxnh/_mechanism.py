@@ -261,7 +261,7 @@ class Mechanism(eqx.Module):
     def _judge_state_terms(self, terms, *, constraint_rtol: Optional[float] = None):
         """The ValueErrors of `check_values`, from `_state_terms` evaluated at the state (by a
         program of the caller's that computes them along with its own results)."""
-        M, c, A, H, near, allowed, on_manifold = (np.asarray(x) for x in terms)
+        M, c, A, affine, near, allowed, on_manifold = (np.asarray(x) for x in terms)
         if not np.all(np.isfinite(M)):
             raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
         # Cholesky's accuracy does not depend on the scaling of the coordinates
@@ -307,9 +307,7 @@ class Mechanism(eqx.Module):
                 "10 times those allowances. "
                 "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
             )
-        if not self.nonlinear_constraints and (
-            np.max(np.abs(H), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(A), initial=0.0))
-        ):
+        if not self.nonlinear_constraints and not bool(affine):
             raise ValueError(
                 "Mechanism `constraints` is nonlinear in qd (∂²c/∂qd² ≠ 0 at the initial state); "
                 "pass nonlinear_constraints=True to Mechanism."
@@ -317,8 +315,9 @@ class Mechanism(eqx.Module):
 
 
 def _state_terms(mech: Mechanism, q, qd, t, params):
-    """Mass matrix, constraint values, ∂c/∂qd and ∂²c/∂qd² at one state, and the compiled checks'
-    verdicts on them (rows nearly dependent; each row's allowance for |c|; qd on the constraints):
+    """Mass matrix, constraint values and ∂c/∂qd at one state, and the compiled checks' verdicts on
+    them (constraints declared linear in qd are; rows nearly dependent; each row's allowance for
+    |c|; qd on the constraints):
     what `Mechanism._judge_state_terms` needs, to be traced into one program (the checks alone
     eagerly were some 40 programs)."""
     from ._checks import consistency_tolerance, consistent, nearly_dependent
@@ -336,7 +335,11 @@ def _state_terms(mech: Mechanism, q, qd, t, params):
         M,
         c0,
         A,
-        jax.jacfwd(jax.jacfwd(c))(qd),
+        # affine in qd: ∂²c/∂qd² negligible against ∂c/∂qd (judged here: only the verdict leaves)
+        ~(
+            jnp.max(jnp.abs(jax.jacfwd(jax.jacfwd(c))(qd)), initial=0.0)
+            > 1e-8 * jnp.maximum(1.0, jnp.max(jnp.abs(A), initial=0.0))
+        ),
         nearly_dependent(A),
         consistency_tolerance(A, qd, a),
         consistent(A, c0, qd, a),

@@ -148,7 +148,8 @@ def _entries(x, aval=None) -> np.ndarray:
             out.reshape(-1)[i] = flat[i]
         return out
     flat = lax.reshape(x, (n,))
-    parts = [lax.squeeze(lax.slice(flat, (i,), (i + 1,)), (0,)) for i in range(n)]
+    # one split (whose derivative's transpose is one concatenation, not a pad per entry)
+    parts = [lax.squeeze(part, (0,)) for part in lax.split(flat, (1,) * n)] if n > 1 else [lax.reshape(flat, ())]
     view = out.reshape(-1)
     for i, p in enumerate(parts):
         view[i] = p

@@ -117,14 +117,15 @@ def block_determinant(A, part: Partition, k: int):
     return AD[0, 0] if m == 1 else jnp.linalg.det(AD)
 
 
-def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int):
+def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int, A=None):
     """(|det A_D| / best volume, signed det A_D, best perm): how good the block in use is.
 
     The ratio is 1 for the best block greedy pivoting finds and 0 for a
-    singular block (both on the row-normalised A).
+    singular block (both on the row-normalised A). `A`: the constraint
+    matrix ∂c/∂qd at the state, when the caller has it already.
     """
     s = q.shape[0]
-    A = constraint_matrix(mech, q, qd, t, params)
+    A = constraint_matrix(mech, q, qd, t, params) if A is None else A
     if A.shape[0] == 0:
         one = jnp.ones((), q.dtype)
         return one, one, jnp.arange(s, dtype=jnp.int32)

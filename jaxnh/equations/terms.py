@@ -21,49 +21,41 @@ import jax.numpy as jnp
 from ..linalg import mm
 
 
-def kinetic_pushforward(mech, q, qd, t, params, dq, dqd, dt):
-    """∂T/∂q, and the derivatives of (∂T/∂q, ∂T/∂qd) along n directions at once.
+def _momentum(mech, params):
+    """p(q, qd, t) = ∂T/∂qd, the generalized momentum."""
+    return lambda q_, qd_, t_: jax.grad(mech.kinetic, argnums=1)(q_, qd_, t_, params)
 
-    One reverse pass over T gives both gradients; a `jvp` of that pass batched
-    over the directions (rows of `dq` (n, s), `dqd` (n, s), `dt` (n,)) pushes them
-    forward, its primal traced and evaluated once. Returns `(∂T/∂q (s,), d∂T/∂q
-    (n, s), d∂T/∂qd (n, s))`; along (qd, a, 1) the last is `M a + h + ∂T/∂q`, along
-    (0, e, 0) it is `M e`. Units: those of T per unit of q, and per unit of q and
-    of each direction.
-    """
 
-    def gradients(q_, qd_, t_):
-        return jax.grad(mech.kinetic, argnums=(0, 1))(q_, qd_, t_, params)
-
-    push = jax.vmap(lambda a, b, c: jax.jvp(gradients, (q, qd, t), (a, b, c)), out_axes=(None, 0))
-    (dTdq, _), (ddq, ddqd) = push(dq, dqd, dt)
-    return dTdq, ddq, ddqd
+def _velocity_terms(mech, q, qd, t, params):
+    """∂T/∂q and `(∂p/∂q) qd + ∂p/∂t = h + ∂T/∂q` (the momentum pushed forward along the motion)."""
+    momentum = _momentum(mech, params)
+    _, dp = jax.jvp(lambda q_, t_: momentum(q_, qd, t_), (q, t), (qd, jnp.ones_like(t)))
+    return jax.grad(mech.kinetic, argnums=0)(q, qd, t, params), dp
 
 
 def mass_and_velocity_terms(mech, q, qd, t, params):
     """Mass matrix M (s, s) and velocity terms h (s,) of the Lagrange expression."""
-    s = q.shape[0]
-    dq = jnp.concatenate([qd[None], jnp.zeros((s, s), qd.dtype)])
-    dqd = jnp.concatenate([jnp.zeros((1, s), qd.dtype), jnp.eye(s, dtype=qd.dtype)])
-    dt = jnp.zeros((s + 1,), jnp.result_type(t)).at[0].set(1)
-    dTdq, _, dp = kinetic_pushforward(mech, q, qd, t, params, dq, dqd, dt)
-    # M is symmetric: its rows are the pushed-forward momenta along the unit directions
-    return dp[1:], dp[0] - dTdq
+    dTdq, dp = _velocity_terms(mech, q, qd, t, params)
+    return jax.jacfwd(_momentum(mech, params), argnums=1)(q, qd, t), dp - dTdq
 
 
 def projected_terms(mech, q, qd, t, params, B, beta):
     """`K = Bᵀ M B` (k, k) and `r = Bᵀ (M β + h)` (k,) for the velocity map qd = B v + ...
 
-    The k + 1 directions (qd, β, 1) and (0, B e_j, 0) alone are pushed forward,
-    so neither the full mass matrix nor unused Jacobian columns are formed (the
-    derived Appell field's system matrix and right-hand side).
+    The derived Appell field's system matrix and right-hand side from the k + 1
+    products `M [B, β]` (the momentum pushed forward along those velocity
+    directions only), not from the whole mass matrix: no unused Jacobian column
+    is formed (for the variator, k = 1 of s = 2).
     """
-    s, k = B.shape
-    dq = jnp.concatenate([qd[None], jnp.zeros((k, s), qd.dtype)])
-    dqd = jnp.concatenate([beta[None], B.T])
-    dt = jnp.zeros((k + 1,), jnp.result_type(t)).at[0].set(1)
-    dTdq, _, dp = kinetic_pushforward(mech, q, qd, t, params, dq, dqd, dt)
-    return mm(dp[1:], B), mm(B.T, dp[0] - dTdq)
+    k = B.shape[1]
+    momentum = _momentum(mech, params)
+    dTdq, dp = _velocity_terms(mech, q, qd, t, params)
+
+    def along(d):
+        return jax.jvp(lambda v: momentum(q, v, t), (qd,), (d,))[1]
+
+    MD = jax.vmap(along, in_axes=1, out_axes=1)(jnp.concatenate([B, beta[:, None]], axis=1))
+    return mm(B.T, MD[:, :k]), mm(B.T, dp - dTdq + MD[:, k])
 
 
 def constraint_terms(mech, q, qd, t, params):
