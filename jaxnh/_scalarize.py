@@ -27,6 +27,7 @@ import functools
 import math
 from typing import Any, Callable
 
+import equinox as eqx
 import jax
 import jax.core
 import jax.numpy as jnp
@@ -365,14 +366,23 @@ def scalarized(f: Callable) -> Callable:
     @functools.wraps(f)
     def g(*args):
         leaves, tree = jax.tree_util.tree_flatten(args)
-        closed, out_shape = jax.make_jaxpr(lambda *xs: f(*jax.tree_util.tree_unflatten(tree, xs)), return_shape=True)(
-            *leaves
-        )
+        # arrays (and tracers) are the jaxpr's inputs; anything else (Python numbers, strings,
+        # callables) stays as it is, as in a trace of f
+        where = [i for i, x in enumerate(leaves) if eqx.is_array(x)]
+
+        def with_arrays(*xs):
+            full = list(leaves)
+            for i, x in zip(where, xs):
+                full[i] = x
+            return f(*jax.tree_util.tree_unflatten(tree, full))
+
+        arrays_in = [leaves[i] for i in where]
+        closed, out_shape = jax.make_jaxpr(with_arrays, return_shape=True)(*arrays_in)
         biggest, ops = _survey(closed.jaxpr)
         if biggest > MAX_ENTRIES or ops > MAX_SCALAR_OPS:
             return f(*args)
         consts = [_const_entries(c) for c in closed.consts]
-        ins = [_entries(x, v.aval) for x, v in zip(leaves, closed.jaxpr.invars)]
+        ins = [_entries(x, v.aval) for x, v in zip(arrays_in, closed.jaxpr.invars)]
         outs = _eval(closed.jaxpr, consts, ins)
         arrays = [_assemble(o, v.aval) for o, v in zip(outs, closed.jaxpr.outvars)]
         return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), arrays)

@@ -150,3 +150,35 @@ def test_model_fields_are_the_same_function(model, method):
     flat = lambda fn: lambda z_: ravel_pytree(fn(t, unravel(z_), p))[0]  # noqa: E731
     close(jax.jit(flat(g))(z), flat(f)(z))
     close(jax.jacfwd(flat(g))(z), jax.jacfwd(flat(f))(z), rtol=1e-12)
+
+
+@jax.custom_vjp
+def clipped(x):
+    return jnp.minimum(x, 1.0)
+
+
+def _clipped_fwd(x):
+    return clipped(x), x
+
+
+def _clipped_bwd(x, g):
+    return (3.0 * g,)  # an unusual rule, which must survive flattening
+
+
+clipped.defvjp(_clipped_fwd, _clipped_bwd)
+
+
+def test_custom_vjp_and_static_leaves_pass_through():
+    """A custom_vjp rule is kept; leaves that are not arrays (a string, a Python number, a
+    function) stay static, as they are in a trace of the function itself."""
+
+    def f(x, p):
+        scale = 2.0 if p["mode"] == "double" else 1.0
+        return p["gain"] * scale * clipped(x) + p["fn"](x)
+
+    p = {"gain": 1.5, "mode": "double", "fn": jnp.sin}
+    x = jnp.array([0.3, 2.0])
+    close(jax.jit(lambda x: scalarized(f)(x, p))(x), f(x, p))
+    g = jax.grad(lambda x: scalarized(f)(x, p).sum())(x)
+    close(g, jax.grad(lambda x: f(x, p).sum())(x))
+    close(g, 1.5 * 2.0 * 3.0 + jnp.cos(x))
