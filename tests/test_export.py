@@ -251,3 +251,28 @@ def test_memoised_calls_take_numpy_scalars_as_inputs(folder):
         assert out is not None
         np.testing.assert_allclose(float(out), 6.0 * float(scale), rtol=1e-15)
     assert len(os.listdir(folder)) == 1
+
+
+def test_exported_call_skips_linear_algebra_setup_only_when_unused():
+    """The first call of an exported program that calls no LAPACK kernel skips JAX's LAPACK
+    set-up (a SciPy import); one that calls LAPACK is recognised, and the hook is restored.
+    (The test's name avoids the word LAPACK in lower case: source locations, function names
+    included, are part of the serialized module, and the check errs on the side of set-up.)"""
+    from jax._src.export import _export as internal
+
+    from jaxnh._export import _calls_no_lapack, _lapack_left_alone
+
+    S = jax.ShapeDtypeStruct((20, 20), jnp.float64)
+    plain = jax.export.export(jax.jit(lambda a: jnp.sin(a) @ a))(S)
+    factor = jax.export.export(jax.jit(jnp.linalg.cholesky))(S)
+    assert _calls_no_lapack(plain)
+    assert not _calls_no_lapack(factor)
+    hook = internal._ensure_backends_initialized
+    with _lapack_left_alone():
+        assert internal._ensure_backends_initialized is not hook
+    assert internal._ensure_backends_initialized is hook
+    # a LAPACK program exported and called afterwards is right
+    a = np.random.default_rng(1).normal(size=(20, 20))
+    spd = a @ a.T + 20 * np.eye(20)
+    L = np.asarray(jax.jit(factor.call)(jnp.asarray(spd)))
+    np.testing.assert_allclose(L @ L.T, spd, rtol=0, atol=1e-12)
