@@ -860,11 +860,12 @@ def build(R) -> tuple[str, dict]:
             ),
             "",
         ]
-    from . import cache_effect, field_size, lean_loop  # issue 16: first answers, the loop, the field's size
+    from . import cache_effect, field_size, lean_loop, suite_time  # issue 16: first answers, loop, field, suite
 
     L += cache_effect.section(R.get("first_answer"))
     L += lean_loop.section(R.get("lean_loop"))
     L += field_size.section(R.get("field_size"))
+    L += suite_time.section(R.get("suite_time"))
     others = [(p, C.HERE / p) for p in ("STABILITY.md", "CALIBRATION.md", "SWEEP.md")]
     present = [p for p, path in others if path.exists()]
     if present:
@@ -891,6 +892,7 @@ def main():
         "lean_loop",
         "field_size",
         "first_answer",
+        "suite_time",
     )
     R = {k: C.load(k) for k in names}
     C.FIGURES.mkdir(parents=True, exist_ok=True)
