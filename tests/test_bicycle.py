@@ -84,6 +84,7 @@ def test_upright_running_is_steady_and_the_rear_wheel_decouples(lagrange):
     np.testing.assert_allclose(A[:, :, 3], 0.0, atol=1e-12)  # ... and affects nothing
 
 
+@pytest.mark.slow
 def test_appell_with_newton_pitch_equals_lagrange(lagrange, appell):
     np.testing.assert_allclose(appell.A, np.asarray(lagrange.A)[[0, 1, 6]], rtol=1e-11, atol=1e-11)
     np.testing.assert_allclose(appell.mass, np.asarray(lagrange.mass)[[0, 1, 6]], rtol=1e-12, atol=1e-12)
@@ -122,6 +123,7 @@ def runs():
     return {"small": run(5.0, 0.01), "kick5": run(5.0, 0.5), "kick2": run(2.0, 0.5, jnp.linspace(0.0, 1.5, 101))}
 
 
+@pytest.mark.slow
 def test_small_kick_follows_the_linear_model(runs):
     """Left-right symmetry makes the error cubic in the amplitude: relative error O(kick²) = 1e-4."""
     sol = runs["small"]
@@ -134,6 +136,7 @@ def test_small_kick_follows_the_linear_model(runs):
     )
 
 
+@pytest.mark.slow
 def test_self_stable_at_5_and_falls_at_2(runs):
     roll5 = np.abs(np.asarray(runs["kick5"].q[:, B.ROLL]))
     assert roll5[-20:].max() < 0.2 * roll5[:20].max()  # decays (slowest mode: the capsize root −0.32/s)
@@ -141,6 +144,7 @@ def test_self_stable_at_5_and_falls_at_2(runs):
     assert roll2[-1] > 0.5 > roll2[:20].max()  # the weave grows (+2.7/s) and the bicycle falls over
 
 
+@pytest.mark.slow
 def test_constraints_and_energy_hold(runs):
     for sol in runs.values():
         assert sol.message == "success"
@@ -151,6 +155,7 @@ def test_constraints_and_energy_hold(runs):
         assert np.ptp(E) < 1e-9 * abs(E[0])  # no dissipation in the Whipple model
 
 
+@pytest.mark.slow
 def test_nonlinear_appell_with_newton_pitch_equals_lagrange(runs):
     """The 7-coordinate Appell model (pitch by Newton) along the kicked run: ~50 s to compile."""
     q, qd = B.upright(5.0, P)

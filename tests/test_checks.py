@@ -99,6 +99,7 @@ def row_status(d, e, qd0):
     return nh.simulate(MECH2, p, jnp.zeros(3), qd0, TS, "lagrange", throw=False).status._value
 
 
+@pytest.mark.slow
 def test_nearly_dependent_rows_refused_and_distance_judged():
     args = [(jnp.asarray(d), jnp.asarray(e), jnp.asarray(qd0, dtype=float)) for d, e, qd0, _ in ROW_CASES]
     want = [int(nh.STATUS._name_to_item[name]._value) for *_, name in ROW_CASES]

@@ -119,6 +119,7 @@ def _loss(theta, w, static, adjoint):
     return jnp.sum(sol.q**2) + jnp.sum(sol.qd**2)
 
 
+@pytest.mark.slow
 def test_forward_sensitivities_equal_reverse_mode_in_every_mode():
     """grad (under vmap) and jacfwd by forward sensitivities equal reverse mode.
 
@@ -142,6 +143,7 @@ def test_forward_sensitivities_equal_reverse_mode_in_every_mode():
     assert float(jnp.abs(g_rev[0][1])) > 0  # the initial speed is differentiated too
 
 
+@pytest.mark.slow
 def test_forward_sensitivities_reach_arrays_inside_the_formulation():
     """The Baumgarte rate lives in the formulation, not in params: still differentiated.
 
@@ -173,6 +175,7 @@ def test_forward_sensitivities_reach_arrays_inside_the_formulation():
     np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_default_gradient_matches_reverse_mode_to_tolerance():
     """With the sensitivities in the error control (the default) the steps differ from
     the plain solve's; both gradients approximate the exact one to the tolerance."""

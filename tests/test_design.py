@@ -100,6 +100,7 @@ def test_fd_gradient_on_a_pytree():
     assert fd["tag"] is None
 
 
+@pytest.mark.slow
 def test_optimal_ratio_gradient_matches_central_differences():
     """The gradient `optimize` follows (reverse mode through diffrax) for the
     example's objective, recovered from one SGD step, against central differences.

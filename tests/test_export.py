@@ -190,6 +190,7 @@ def new_process(monkeypatch):
     jax.clear_caches()
 
 
+@pytest.mark.slow
 def test_users_mechanism_kept_under_what_its_functions_compute(folder, monkeypatch):
     """A simulation of a user's mechanism is kept (no second trace in a later process, the same
     answer), and any change in what its functions compute is another program: a helper it calls,

@@ -166,6 +166,7 @@ def test_singular_split_is_refused():
         nh.accelerations(MECH, q, qd, t, P, method="appell", independent=(1, 3))
 
 
+@pytest.mark.slow
 def test_nonlinear_constraint_by_chetaev_conserves_energy_and_formulations_agree():
     """A point whose speed in the plane is tied to a rotor: qd2 = sqrt(qd0² + qd1²).
 

@@ -247,6 +247,7 @@ def check_case(checkers, s, m, case):
     return p, r
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("s,m", SHAPES)
 def test_random_mechanisms(checkers, s, m):
     """Lagrange = Appell, constraints hold, and the power balance holds, for random mechanisms."""

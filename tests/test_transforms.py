@@ -45,6 +45,7 @@ def final_angle(p, **kw):
     return nh.simulate(MECH, p, jnp.zeros(2), QD0, TS, **kw).q[-1, 0]
 
 
+@pytest.mark.slow
 def test_readme_example_under_jit_vmap_grad_without_hints():
     eager = final_angle(P)
     np.testing.assert_allclose(jax.jit(final_angle)(P), eager, rtol=1e-12, atol=0)
@@ -113,6 +114,7 @@ def test_a_fixed_partition_that_goes_singular_fails_clearly(cos_runs):
     assert "singular" in sol.message
 
 
+@pytest.mark.slow
 def test_knife_edge_through_heading_pi_over_2_with_coarse_report_times():
     """Released spinning, the blade's heading passes π/2, π, 3π/2: whichever of ẋ, ẏ is
     dependent becomes unsolvable somewhere. The partition is re-chosen during the run;
@@ -240,6 +242,7 @@ def test_nan_parameter_gives_nan_gradient_not_zero():
     assert bool(jnp.isnan(g))
 
 
+@pytest.mark.slow
 def test_failed_solve_gives_nan_gradient_in_reverse_mode():
     def f(j):
         sol = nh.simulate(
@@ -260,6 +263,7 @@ def test_failed_solve_gives_nan_gradient_in_reverse_mode():
 # --- events, dense output and ode ----------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_event_time_is_a_root_of_the_dense_output():
     """Stop when phi1 reaches 3 rad; the event time solves phi1(t) = 3 on the dense output."""
     target = 3.0
