@@ -30,7 +30,7 @@ from benchmarks.cache_effect import _as_a_user
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DURATION = re.compile(r"^\s*([\d.]+)s (?:call|setup|teardown)\s+(tests/[^:\s]+)::")
-OUTCOME = re.compile(r"(\d+ (?:passed|failed|error)[^\n]*) in ([\d.]+)s")
+OUTCOME = re.compile(r"(\d+ (?:passed|failed|error)[^\n]*) in [\d.]+s")
 
 
 def run_suite(cache: str, quick: bool) -> dict:
@@ -71,13 +71,11 @@ def main() -> None:
             warm = run_suite(cache, args.quick)
             print(f"warm: {warm['wall']:.0f} s  ({warm['outcome']})", flush=True)
             runs.append({"cold": cold, "warm": warm})
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     result = {
         "tier": "quick" if args.quick else "full",
         "cold_median": statistics.median(r["cold"]["wall"] for r in runs),
         "warm_median": statistics.median(r["warm"]["wall"] for r in runs),
         "runs": runs,
-        "load_after": load,
         "cpus": os.cpu_count(),
     }
     C.save("suite_time", result)
@@ -95,8 +93,8 @@ def section(res) -> list:
         f"{res['cpus']} cores; CPU: {res.get('machine', {}).get('cpu', 'not recorded')}), in a new process "
         "with an empty cache folder (cold: a fresh machine, as CI) and "
         "again on the folder that run wrote (warm). Target: at most 4 minutes on 2 idle cores, using the cache. "
-        "Not part of `make bench` (a cold "
-        "and a warm run take about 12 minutes); rendered here from the last run's JSON.",
+        "Not part of `make bench` (a cold and a warm run take about 12 minutes); rendered here from the last "
+        "run's JSON.",
         "",
         "| run | wall time | outcome |",
         "|---|---:|---|",
