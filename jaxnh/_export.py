@@ -52,7 +52,7 @@ import jax.core
 import numpy as np
 
 
-__all__ = ["exported_call", "one_shot_jit", "ONE_SHOT", "SIMULATE_OPTIONS", "SHIPPED", "build_shipped"]
+__all__ = ["exported_call", "one_shot_jit", "compile_ahead", "ONE_SHOT", "SIMULATE_OPTIONS", "SHIPPED", "build_shipped"]
 
 SHIPPED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "programs")
 """The folder of programs shipped with the package (read only, except by `build_shipped`)."""
@@ -289,7 +289,56 @@ def one_shot_jit(fn: _F) -> _F:
         out = exported_call(fn, args, kwargs, name=fn.__name__, compiler_options=ONE_SHOT)
         return jitted(*args, **kwargs) if out is None else out
 
+    def lower(*args, **kwargs):
+        """The program `call(*args, **kwargs)` would compile, lowered (a `jax.stages.Lowered`), or
+        None under a transformation. Arrays may be stand-ins of the same shapes and dtypes (NumPy
+        zeros, say): only the structure counts."""
+        if under_jit() or is_traced(args, kwargs):
+            return None
+        resolved = _exported_program(fn, args, kwargs, name=fn.__name__, compiler_options=ONE_SHOT)
+        if resolved is None:
+            return jitted.lower(*args, **kwargs)
+        program, inputs, lapack_free = resolved
+        with _lapack_left_alone() if lapack_free else contextlib.nullcontext():
+            return program.lower(*inputs)
+
+    call.lower = lower  # pyright: ignore[reportAttributeAccessIssue]
     return call  # pyright: ignore[reportReturnType]
+
+
+def compile_ahead(jobs) -> None:
+    """Compile several one-shot programs before they are called, at the same time on as many
+    threads as there are cores.
+
+    XLA compiles one program on one core: the Whipple bicycle's linearisation, split into its
+    kinematics, its dynamics and its checks (`jaxnh._linearize`), compiles in about the time of
+    its largest part on two cores instead of the sum. `jobs`: `(one_shot_fn, args, kwargs)` with
+    functions from `one_shot_jit`; arguments that are not known yet (outputs of an earlier job)
+    may be stand-in arrays of their shapes and dtypes (which the calls must then pass as NumPy
+    arrays too: an exported program's outputs are committed to a device, and JAX compiles anew for
+    committed inputs). Each program is lowered here, in order (tracing is Python, on this thread),
+    and compiled on a thread pool as soon as it is; the compiled programs land in JAX's caches (in
+    memory, and the persistent cache when it is on), where the calls that follow find them. A job
+    that cannot be lowered or compiled is skipped: its call reports the problem.
+    """
+    import concurrent.futures
+
+    def compile_one(low):
+        try:
+            low.compile()
+        except Exception:  # noqa: BLE001 - the call itself raises, with its own message
+            pass
+
+    # each program goes to the pool as soon as it is lowered: XLA compiles the first while Python
+    # traces the next (a shipped program needs no tracing, and is lowered in a fraction of a second)
+    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, min(len(jobs), os.cpu_count() or 1))) as pool:
+        for fn, args, kwargs in jobs:
+            try:
+                low = fn.lower(*args, **(kwargs or {}))
+            except Exception:  # noqa: BLE001 - the call itself raises, with its own message
+                continue
+            if low is not None:
+                pool.submit(compile_one, low)
 
 
 def exported_call(
@@ -310,7 +359,25 @@ def exported_call(
     (`_mechanism_fingerprint`), so that programs of users' own mechanisms are kept too. `memo`:
     a hashable stand-in for the static arguments (the caller's own cache key), which spares
     fingerprinting them again on later calls in this process."""
+    resolved = _exported_program(
+        fn, args, kwargs, name=name, compiler_options=compiler_options, mech_args=mech_args, memo=memo
+    )
+    if resolved is None:
+        return None
+    program, inputs, lapack_free = resolved
+    if lapack_free:
+        with _lapack_left_alone():  # the first call lowers the program
+            return program(*inputs)
+    return program(*inputs)
+
+
+def _exported_program(fn: Callable, args: tuple, kwargs: Optional[dict] = None, *, name: str, **options):
+    """`exported_call`'s program for these arguments (and its keyword `options`): `(program, inputs, lapack_free)`, with
+    `program(*inputs)` the call (a jitted call of the exported program), and `lapack_free` True
+    when it is met for the first time in this process and calls no LAPACK kernel; or None when
+    no exported program applies."""
     global _MECH_ARGS
+    compiler_options, mech_args, memo = options.get("compiler_options"), options.get("mech_args"), options.get("memo")
     call_args = (args, {} if kwargs is None else kwargs)
     leaves, treedef = jax.tree_util.tree_flatten(call_args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
@@ -326,7 +393,7 @@ def exported_call(
         memo_key = (name, memo, treedef, avals)
         fast = _FAST.get(memo_key)
         if fast is not None:  # a later call in this process: straight to the compiled program
-            return fast(*[x for x, d in zip(leaves, dynamic) if d])
+            return fast, [x for x, d in zip(leaves, dynamic) if d], False
     folder = _folder()
     if folder is None and not _shipped_readable():
         return None
@@ -394,12 +461,10 @@ def exported_call(
         _MEMO[key] = call
         if memo_key is not None:
             _FAST[memo_key] = call
-        if _calls_no_lapack(exp):
-            with _lapack_left_alone():  # the first call lowers the program
-                return call(*inputs)
+        return call, inputs, _calls_no_lapack(exp)
     if memo_key is not None:
         _FAST[memo_key] = call
-    return call(*inputs)
+    return call, inputs, False
 
 
 def _calls_no_lapack(exp) -> bool:

@@ -27,25 +27,35 @@ bicycle running straight: the wheels turn, the position advances) as long
 as the chosen state is steady there; `Linearization.rates` holds `ẋ` at the
 operating point to check that it is.
 
-Nested automatic differentiation makes large graphs: for the Whipple
-bicycle (8 coordinates, 5 constraints) one linearisation is some 20k traced
-operations, which take 1.5–2 s to trace and 3–4 s to compile on a 2-core CPU
-(with `jaxnh._export.ONE_SHOT`, XLA's cheapest settings), and about 1 ms to
-evaluate. It is compiled once per structure: later calls, and `jax.vmap` over
-speeds or parameters, reuse it.
+The derivatives are taken in two parts, joined by the chain rule: the
+kinematics (the configuration completed by `complete`, q̇ = B v + β0 and
+β = q̈ at v̇ = 0, with their Jacobians in x, by one forward pass over the n
+state directions) and the dynamics (F = M q̈ + h − Q, or ∂S/∂q̈ − Q, with its
+Jacobians in q, q̇ and q̈, by one forward pass). Nested automatic
+differentiation makes large programs: for the Whipple bicycle (8
+coordinates, 5 constraints) the kinematics are some 11k traced operations,
+the dynamics 7k and the checks of a concrete call 5k. A concrete call
+compiles the three programs at the same time (`jaxnh._export.compile_ahead`,
+with XLA's cheapest settings, `ONE_SHOT`): on a 2-core CPU in about the
+2–2.5 s of the largest, where the linearisation as one program took 5 s.
+They are compiled once per structure: later calls reuse them (about 6 ms for
+the bicycle); under a caller's `jit` the parts are traced into its program,
+and `jax.vmap` over speeds or parameters works as usual.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._checks import constraints_affine
-from ._export import one_shot_jit
+from ._export import compile_ahead, one_shot_jit
 from ._mechanism import _state_terms, Mechanism
 from ._status import is_traced
 from .equations.base import as_data, as_float, as_time
@@ -57,7 +67,7 @@ from .equations.split import (
     resolve_independent,
     VelocitySplit,
 )
-from .linalg import mm, solve_spd, value_and_jacfwd
+from .linalg import solve_spd, value_and_jacfwd
 
 
 __all__ = ["Linearization", "linearize"]
@@ -176,9 +186,11 @@ def linearize(
     # copy of the check for constraints declared linear that are not
     checked = not is_traced(q, qd, t, params)
     args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
-    # compiled once per structure with XLA's cheapest settings; for jaxnh's own models (the bicycle)
-    # kept on disk and shipped as an exported program (jaxnh._export); traced into a caller's jit
-    out = _linearize(*args)
+    # compiled once per structure with XLA's cheapest settings, in parts; for jaxnh's own models (the
+    # bicycle) kept on disk and shipped as exported programs (jaxnh._export); traced into a caller's jit
+    if checked:  # the parts compiled at once (the calls below find them compiled)
+        _compile_parts(mech, params, q, qd, t, m, coordinates, speeds, method, complete, accelerations)
+    out = _linearize_traced(*args)
     A, mass, damping, stiffness, rates, x0, quality, terms = out
     if checked:  # a mass matrix that is not positive definite, constraints declared linear that are not, ...
         mech._judge_state_terms(terms, constraint_rtol=float("inf"))
@@ -205,86 +217,189 @@ def linearize(
 
 
 def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked=False):
-    """The compiled part of `linearize` (once per mechanism, shapes and options). `checked`: the
-    values are concrete and checked on the host after the call, so the in-graph affinity test is
-    left out, and the last two outputs are the quality of the given `speeds`' dependent block at
-    (q, qd) (1 otherwise), for `linearize` to refuse a singular one, and `_state_terms` at (q, qd)
-    for `Mechanism._judge_state_terms` (None otherwise)."""
+    """The linearisation from its compiled parts (the whole of it under a caller's `jit`, where the
+    parts are traced into one program). `checked`: the values are concrete and checked on the host
+    after the call, so the in-graph affinity test is left out, and the last two outputs are the
+    quality of the given `speeds`' dependent block at (q, qd) (1 otherwise), for `linearize` to
+    refuse a singular one, and `_state_terms` at (q, qd) for `Mechanism._judge_state_terms` (None
+    otherwise)."""
+    if checked:
+        quality, terms = _checks(mech, params, q, qd, t, speeds)
+    else:
+        quality, terms = jnp.ones((), q.dtype), None
+    if complete is not None:
+        q_op, dq_dc = _configuration(params, q, t, coordinates, complete)
+    else:  # the coordinates move alone
+        q_op, dq_dc = q, np.eye(q.shape[0], dtype=q.dtype)[:, list(coordinates)]
+    if checked:
+        # concrete: outputs passed on as NumPy arrays, as `_compile_parts` compiled the next
+        # program for (an exported program's outputs are committed to a device, and JAX would
+        # compile anew for those)
+        q_op, dq_dc = np.asarray(q_op), np.asarray(dq_dc)
+    x0, K, dK = _kinematics(mech, params, q_op, dq_dc, qd, t, coordinates, speeds)
+    if checked:
+        K, dK = jax.tree_util.tree_map(np.asarray, (K, dK))
+    if accelerations is None:
+        vd = np.zeros(K[2].shape[1], q.dtype)
+    else:
+        vd = np.asarray(accelerations) if checked else accelerations
+    A, mass, damping, stiffness, rates, vd_next = _dynamics(mech, params, K, dK, vd, t, method, coordinates)
+    if accelerations is None:
+        vd_next = np.asarray(vd_next) if checked else vd_next
+        # E is affine in v̇: the first pass gives the operating accelerations, the second the
+        # matrices there (and `rates`, one more correction, to show that they are right)
+        A, mass, damping, stiffness, rates, _ = _dynamics(mech, params, K, dK, vd_next, t, method, coordinates)
+    out = (A, mass, damping, stiffness, rates, x0)
+    m = K[2].shape[0] - K[2].shape[1]
+    if m and not mech.nonlinear_constraints and not checked:
+        # constraints declared linear that are not would give a finite, wrong matrix: NaN instead
+        # (the eager path raises a ValueError for this before, via `check_values`)
+        affine = constraints_affine(mech, K[0], qd, t, params)
+        out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
+    return (*out, quality, terms)
+
+
+def _checks_traced(mech, params, q, qd, t, speeds):
+    """What `linearize` checks on the host at a concrete state: the quality of the given `speeds`'
+    dependent block at (q, qd) (1 when they are chosen automatically) and `_state_terms`."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
-    split = VelocitySplit(mech, s, m)
+    terms = _state_terms(mech, q, qd, t, params)
     quality = jnp.ones((), q.dtype)
-    terms = _state_terms(mech, q, qd, t, params) if checked else None
-    if checked and speeds is not None and m:
-        quality = partition_quality(mech, q, qd, t, params, speeds, s - m, A=terms[2] if terms else None)[0]
-    if complete is not None:
-        q = complete(q, t, params)
-    part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
-    nc = len(coordinates)
-    use_S = method == "appell" and mech.acceleration_energy is not None
+    if speeds is not None and m:
+        quality = partition_quality(mech, q, qd, t, params, speeds, s - m, A=terms[2])[0]
+    return quality, terms
+
+
+def _configuration_traced(params, q, t, coordinates, complete):
+    """The operating configuration completed by `complete(q, t, params)` (holonomic constraints
+    re-solved) and its derivatives ∂q/∂q_C (s, nc) in the kept coordinates, by forward mode."""
+    q = complete(q, t, params)
 
     def configuration(xc):
         qq = q
         for j, i in enumerate(coordinates):
             qq = qq.at[i].set(xc[j])
-        return complete(qq, t, params) if complete is not None else qq
+        return complete(qq, t, params)
 
-    def E(xc, v, vd):
-        """Bᵀ (M q̈ + h − Q) (or Bᵀ (∂S/∂q̈ − Q)) at q̈ = B v̇ + β."""
-        qq = configuration(xc)
-        qdot, B, beta = split.velocities_and_rates(qq, v, t, params, part)
-        qdd = mm(B, vd) + beta
+    return value_and_jacfwd(configuration, pick(q, coordinates))
+
+
+def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds):
+    """The velocity map at the operating configuration q and its first derivatives in the state.
+
+    `dq_dc`: ∂q/∂q_C (s, nc), how the configuration moves with the kept coordinates. Returns the
+    state x0 = (q_C, v) (n,), K = (q, q̇, B, β) (β: q̈ at v̇ = 0) and their Jacobians dK/dx
+    (`(s, n)`, `(s, n)`, `(s, n, k)`, `(s, n)`): what the constraints contribute, by one
+    forward-mode pass over the s + k directions of (q, v), and the chain rule."""
+    s = q.shape[0]
+    m = mech.n_constraints(q, qd, t, params)
+    k = s - m
+    split = VelocitySplit(mech, s, m)
+    part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
+
+    def velocities(z):
+        return split.velocities_and_rates(z[:s], z[s:], t, params, part)
+
+    v0 = split.independent_of(qd, part)
+    (qdot, B, beta), (Jqdot, JB, Jbeta) = value_and_jacfwd(velocities, jnp.concatenate([q, v0]))
+    nc = dq_dc.shape[1]
+    # ∂(q, v)/∂x for x = (q_C, v)
+    dz = jnp.concatenate(
+        [
+            jnp.concatenate([dq_dc, jnp.zeros((s, k), q.dtype)], axis=1),
+            jnp.concatenate([jnp.zeros((k, nc), q.dtype), jnp.eye(k, dtype=q.dtype)], axis=1),
+        ],
+        axis=0,
+    )
+    dK = (dz[:s], Jqdot @ dz, jnp.einsum("sjk,jn->snk", JB, dz), Jbeta @ dz)
+    x0 = jnp.concatenate([pick(q, coordinates), v0])
+    return x0, (q, qdot, B, beta), dK
+
+
+def _dynamics_traced(mech, params, K, dK, vd, t, method, coordinates):
+    """The linearised equations from the kinematics (`_kinematics_traced`) at independent
+    accelerations v̇ (k,).
+
+    With F(q, q̇, q̈) = M q̈ + h − Q (Lagrange's expression from T, or ∂S/∂q̈ − Q for "appell"),
+    the projected equations are E(x, v̇) = Bᵀ F(q, q̇, B v̇ + β), and by the chain rule
+
+        ∂E/∂x = Σ (∂B/∂x)ᵀ F + Bᵀ (F_q ∂q/∂x + F_q̇ ∂q̇/∂x + F_q̈ (∂B/∂x v̇ + ∂β/∂x)),
+        ∂E/∂v̇ = Bᵀ F_q̈ B,
+
+    with F's Jacobians from one forward-mode pass over (q, q̇, q̈). Returns the state matrix A,
+    mass, damping, stiffness, the rates ẋ and the corrected accelerations v̇ − mass⁻¹ E."""
+    q, qdot, B, beta = K
+    dq, dqdot, dB, dbeta = dK
+    s = q.shape[0]
+    nc = len(coordinates)
+    use_S = method == "appell" and mech.acceleration_energy is not None
+
+    def F(z):
+        qq, qd_, qdd = z[:s], z[s : 2 * s], z[2 * s :]
         if use_S:
-            lhs = jax.grad(mech.acceleration_energy, argnums=2)(qq, qdot, qdd, t, params)
+            lhs = jax.grad(mech.acceleration_energy, argnums=2)(qq, qd_, qdd, t, params)
         else:
-            lhs = lagrange_expression(mech, qq, qdot, qdd, t, params)
-        return mm(B.T, lhs - mech.generalized_forces(qq, qdot, t, params))
+            lhs = lagrange_expression(mech, qq, qd_, qdd, t, params)
+        return lhs - mech.generalized_forces(qq, qd_, t, params)
 
-    # a kept coordinate that is an independent one moves at its speed: its row of ∂q̇_C/∂x is a
-    # unit vector, whatever the state (known when the partition is); the others by forward mode
-    given = isinstance(part, tuple)
-    slaved = tuple(j for j, i in enumerate(coordinates) if not (given and i in part))
-
-    def coordinate_rates(x):
-        qq = configuration(x[:nc])
-        return pick(pick(split.velocities(qq, x[nc:], t, params, part), coordinates), slaved)
-
-    xc0, v0 = pick(q, coordinates), split.independent_of(qd, part)
-    x0 = jnp.concatenate([xc0, v0])
-    n = x0.shape[0]
-    if accelerations is None:
-        # E is affine in v̇: its value at v̇ = 0 and the mass matrix give the operating accelerations
-        E0, mass = value_and_jacfwd(lambda vd: E(xc0, v0, vd), jnp.zeros_like(v0))
-        vd0 = solve_spd(mass, -E0)
-    else:
-        vd0 = accelerations
-    E1, J = value_and_jacfwd(lambda z: E(z[:nc], z[nc:n], z[n:]), jnp.concatenate([x0, vd0]))
-    stiffness, damping, mass = J[:, :nc], J[:, nc:n], J[:, n:]
-    vd0 = vd0 - solve_spd(mass, E1)  # exact already unless `accelerations` was wrong
-    qc_rate = jnp.zeros((nc,), x0.dtype)
-    P = jnp.zeros((nc, n), x0.dtype)
-    if given:
-        for j, i in enumerate(coordinates):
-            if i in part:
-                qc_rate = qc_rate.at[j].set(v0[part.index(i)])
-                P = P.at[j, nc + part.index(i)].set(1.0)
-    if slaved:
-        rate, jac = value_and_jacfwd(coordinate_rates, x0)
-        qc_rate = qc_rate.at[jnp.asarray(slaved)].set(rate)
-        P = P.at[jnp.asarray(slaved)].set(jac)
-    A = jnp.concatenate([P, -solve_spd(mass, J[:, :n])], axis=0)
-    rates = jnp.concatenate([qc_rate, vd0])
-    out = (A, mass, damping, stiffness, rates, x0)
-    if m and not mech.nonlinear_constraints and not checked:
-        # constraints declared linear that are not would give a finite, wrong matrix: NaN instead
-        # (the eager path raises a ValueError for this before, via `check_values`)
-        affine = constraints_affine(mech, q, qd, t, params)
-        out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
-    return (*out, quality, terms)
+    F0, JF = value_and_jacfwd(F, jnp.concatenate([q, qdot, B @ vd + beta]))
+    Fq, Fqd, Fqdd = JF[:, :s], JF[:, s : 2 * s], JF[:, 2 * s :]
+    E = B.T @ F0
+    dqdd = jnp.einsum("snk,k->sn", dB, vd) + dbeta
+    dE = jnp.einsum("snk,s->kn", dB, F0) + B.T @ (Fq @ dq + Fqd @ dqdot + Fqdd @ dqdd)
+    mass = B.T @ Fqdd @ B
+    stiffness, damping = dE[:, :nc], dE[:, nc:]
+    vd_next = vd - solve_spd(mass, E)  # exact already unless the given accelerations were wrong
+    P = pick(dqdot, coordinates)  # ∂q̇_C/∂x (unit rows for kept coordinates that are independent)
+    A = jnp.concatenate([P, -solve_spd(mass, dE)], axis=0)
+    rates = jnp.concatenate([pick(qdot, coordinates), vd_next])
+    return A, mass, damping, stiffness, rates, vd_next
 
 
-# evaluated a handful of times: XLA's cheapest settings
-_linearize = one_shot_jit(_linearize_traced)
+# evaluated a handful of times: XLA's cheapest settings, each part a program of its own (compiled
+# at the same time on a multi-core CPU, `compile_ahead`); under a caller's jit they are one program
+_checks = one_shot_jit(_checks_traced)
+_configuration = one_shot_jit(_configuration_traced)
+_kinematics = one_shot_jit(_kinematics_traced)
+_dynamics = one_shot_jit(_dynamics_traced)
+
+
+def _compile_parts(mech, params, q, qd, t, m, coordinates, speeds, method, complete, accelerations) -> None:
+    """Compile the parts of a concrete linearisation with m constraints at once, on as many cores
+    as there are (`compile_ahead`), the first time this structure is met in the process."""
+    s = q.shape[0]
+    k = s - m
+    n = len(coordinates) + k
+    try:
+        leaves, treedef = jax.tree_util.tree_flatten(params)
+        key = (mech, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves), q.shape, q.dtype)
+        key += (coordinates, speeds, method, complete, accelerations is None)
+        hash(key)
+    except TypeError:
+        key = None
+    if key is not None and key in _COMPILED:
+        return
+    z = functools.partial(np.zeros, dtype=q.dtype)  # stand-ins for outputs of the parts before
+    K, dK = (z(s), z(s), z((s, k)), z(s)), (z((s, n)), z((s, n)), z((s, n, k)), z((s, n)))
+    nc = len(coordinates)
+    q_op, dq_dc = (z(s), np.eye(s, dtype=q.dtype)[:, list(coordinates)]) if complete is None else (z(s), z((s, nc)))
+    jobs = [  # the largest first
+        (_kinematics, (mech, params, q_op, dq_dc, qd, t, coordinates, speeds), None),
+        (_dynamics, (mech, params, K, dK, z(k), t, method, coordinates), None),
+        (_checks, (mech, params, q, qd, t, speeds), None),
+    ]
+    if complete is not None:
+        jobs.append((_configuration, (params, q, t, coordinates, complete), None))
+    compile_ahead(jobs)
+    if key is not None:
+        if len(_COMPILED) > 256:
+            _COMPILED.clear()
+        _COMPILED[key] = True
+
+
+_COMPILED: dict = {}
+"""Structures whose parts `_compile_parts` has compiled in this process."""
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
