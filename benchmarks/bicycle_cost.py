@@ -16,7 +16,8 @@ compilation; the machine's load matters, so the script also prints CPU time):
 1. jaxnh: from the model definition (`jaxnh.models.bicycle`: four rigid bodies,
    one holonomic and four nonholonomic contact constraints) to the 4×4
    lean/steer state matrix at 5 m/s — first call and a repeat call — and to
-   the matrices at 101 speeds in one vmapped call.
+   the matrices at 101 speeds, as concrete calls (one-speed programs, stacked)
+   and as one vmapped program under `jax.jit`.
 2. jaxnh: a 5 s nonlinear simulation (Lagrange's equations with multipliers,
    8 coordinates, rtol 1e-8, the default solver — for this large vector field
    diffrax's Dopri8, see `jaxnh._simulate.default_solver`), first call and the
@@ -78,12 +79,18 @@ def jaxnh_costs():
     A = np.asarray(lin(5.0, p))
     out["state matrix, repeat call"] = since(start)
     start = clock()
-    batch = bicycle.linearized_speeds(jnp.linspace(0.0, 10.0, 101), p)
-    jax.block_until_ready(batch.A)
-    out["101 speeds in one vmapped call, first (cheap XLA options)"] = since(start)
+    jax.block_until_ready(bicycle.linearized_speeds(jnp.linspace(0.0, 10.0, 101), p).A)
+    out["101 speeds, concrete (one-speed programs, stacked), first"] = since(start)
     start = clock()
     jax.block_until_ready(bicycle.linearized_speeds(jnp.linspace(0.0, 10.0, 101) + 0.01, p).A)
-    out["101 speeds, repeat"] = since(start)
+    out["101 speeds, concrete, repeat"] = since(start)
+    batched = jax.jit(bicycle.linearized_speeds)
+    start = clock()
+    jax.block_until_ready(batched(jnp.linspace(0.0, 10.0, 101), p).A)
+    out["101 speeds in one vmapped program (jax.jit), first (trace + compile + run)"] = since(start)
+    start = clock()
+    jax.block_until_ready(batched(jnp.linspace(0.0, 10.0, 101) + 0.01, p).A)
+    out["101 speeds in one vmapped program, repeat"] = since(start)
 
     q, qd = bicycle.upright(5.0, p)
     qd = qd.at[bicycle.ROLL].set(0.5)

@@ -376,7 +376,7 @@ def _compile_parts(mech, params, q, qd, t, m, coordinates, speeds, method, compl
         key = (mech, treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves), q.shape, q.dtype)
         key += (coordinates, speeds, method, complete, accelerations is None)
         hash(key)
-    except TypeError:
+    except Exception:  # noqa: BLE001 - no key (an unhashable part, a leaf without a dtype): compiled again
         key = None
     if key is not None and key in _COMPILED:
         return

@@ -287,6 +287,16 @@ def _reduce(idx):
     return tuple(FREE.index(i) for i in idx)
 
 
+def _setup(method: str):
+    """What `linearized` passes to `linearize` besides the state: the mechanism, the selection of
+    its coordinates out of all 8 (None: all), and the keyword arguments."""
+    if method == "lagrange":
+        kw = dict(coordinates=(ROLL, STEER), speeds=INDEPENDENT, method="lagrange", complete=system().restore)
+        return mechanism("lagrange"), None, kw
+    kw = dict(coordinates=_reduce((ROLL, STEER)), speeds=_reduce(INDEPENDENT), method="appell")
+    return mechanism(method), FREE, kw
+
+
 def linearized(v, params=None, method: str = "lagrange"):
     """`jaxnh.Linearization` of upright straight running at speed v (m/s).
 
@@ -299,31 +309,12 @@ def linearized(v, params=None, method: str = "lagrange"):
     the operating accelerations are zero (`rates` confirms it).
     """
     params = default_params() if params is None else params
+    mech, select, kw = _setup(method)
     q, qd = upright(v, params)
-    steady = jnp.zeros(len(INDEPENDENT), q.dtype)
-    if method == "lagrange":
-        return linearize(
-            mechanism("lagrange"),
-            params,
-            q,
-            qd,
-            coordinates=(ROLL, STEER),
-            speeds=INDEPENDENT,
-            method="lagrange",
-            complete=system().restore,
-            accelerations=steady,
-        )
-    sel = jnp.asarray(FREE)
-    return linearize(
-        mechanism(method),
-        params,
-        q[sel],
-        qd[sel],
-        coordinates=_reduce((ROLL, STEER)),
-        speeds=_reduce(INDEPENDENT),
-        method="appell",
-        accelerations=steady,
-    )
+    if select is not None:
+        sel = jnp.asarray(select)
+        q, qd = q[sel], qd[sel]
+    return linearize(mech, params, q, qd, accelerations=jnp.zeros(len(INDEPENDENT), q.dtype), **kw)
 
 
 LEAN_STEER = (0, 1, 2, 4)  # roll, steer, d roll, d steer within the linearised state
@@ -357,20 +348,34 @@ _linearized_speeds: Callable[..., Linearization] = one_shot_jit(_linearized_spee
 
 
 def linearized_speeds(speeds, params=None, method: str = "lagrange"):
-    """`linearized` at each of `speeds` (m/s), compiled once: a batched `Linearization`."""
+    """`linearized` at each of `speeds` (m/s): a batched `Linearization`.
+
+    For concrete speeds and parameters, `linearized` at each speed, stacked: its programs are
+    compiled once, whatever the number of speeds (some 6 ms per speed after the first), and every
+    speed is checked as `linearized` checks one. Under `jit`/`vmap`/`grad` it is `jax.vmap` of
+    `linearized`, one program for the batch (`jax.jit(linearized_speeds)` gives that for concrete
+    speeds too: worth its compilation for thousands of speeds)."""
     params = default_params() if params is None else params
-    return _linearized_speeds(jnp.asarray(speeds, dtype=jnp.result_type(float)), params, method)
+    speeds = jnp.asarray(speeds, dtype=jnp.result_type(float))
+    if is_traced(speeds, params) or speeds.ndim != 1:
+        return _linearized_speeds(speeds, params, method)
+    each = [linearized(v, params, method) for v in np.asarray(speeds)]
+    return jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *each)
 
 
 def canonical_from(lin, g) -> dict:
     """M, C1, K0, K2 from a batched `Linearization` whose first two speeds are 0 and 1 m/s."""
-    ls = jnp.asarray((0, 2))  # roll and steer among the independent speeds (roll, rear wheel, steer)
-    return {
-        "M": lin.mass[0][ls][:, ls],
-        "C1": lin.damping[1][ls][:, ls],
-        "K0": lin.stiffness[0][ls] / g,
-        "K2": lin.stiffness[1][ls] - lin.stiffness[0][ls],
+    # concrete: selected on the host (eagerly, each indexing operation is a program to compile)
+    xp = jnp if is_traced(lin, g) else np
+    mass, damping, stiffness = (xp.asarray(x) for x in (lin.mass, lin.damping, lin.stiffness))
+    ls = xp.asarray((0, 2))  # roll and steer among the independent speeds (roll, rear wheel, steer)
+    out = {
+        "M": mass[0][ls][:, ls],
+        "C1": damping[1][ls][:, ls],
+        "K0": stiffness[0][ls] / xp.asarray(g),
+        "K2": stiffness[1][ls] - stiffness[0][ls],
     }
+    return out if xp is jnp else {k: jnp.asarray(v) for k, v in out.items()}
 
 
 def canonical_matrices(params=None, method: str = "lagrange") -> dict:
