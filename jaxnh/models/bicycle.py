@@ -287,16 +287,6 @@ def _reduce(idx):
     return tuple(FREE.index(i) for i in idx)
 
 
-def _setup(method: str):
-    """What `linearized` passes to `linearize` besides the state: the mechanism, the selection of
-    its coordinates out of all 8 (None: all), and the keyword arguments."""
-    if method == "lagrange":
-        kw = dict(coordinates=(ROLL, STEER), speeds=INDEPENDENT, method="lagrange", complete=system().restore)
-        return mechanism("lagrange"), None, kw
-    kw = dict(coordinates=_reduce((ROLL, STEER)), speeds=_reduce(INDEPENDENT), method="appell")
-    return mechanism(method), FREE, kw
-
-
 def linearized(v, params=None, method: str = "lagrange"):
     """`jaxnh.Linearization` of upright straight running at speed v (m/s).
 
@@ -309,12 +299,31 @@ def linearized(v, params=None, method: str = "lagrange"):
     the operating accelerations are zero (`rates` confirms it).
     """
     params = default_params() if params is None else params
-    mech, select, kw = _setup(method)
     q, qd = upright(v, params)
-    if select is not None:
-        sel = jnp.asarray(select)
-        q, qd = q[sel], qd[sel]
-    return linearize(mech, params, q, qd, accelerations=jnp.zeros(len(INDEPENDENT), q.dtype), **kw)
+    steady = jnp.zeros(len(INDEPENDENT), q.dtype)
+    if method == "lagrange":
+        return linearize(
+            mechanism("lagrange"),
+            params,
+            q,
+            qd,
+            coordinates=(ROLL, STEER),
+            speeds=INDEPENDENT,
+            method="lagrange",
+            complete=system().restore,
+            accelerations=steady,
+        )
+    sel = jnp.asarray(FREE)
+    return linearize(
+        mechanism(method),
+        params,
+        q[sel],
+        qd[sel],
+        coordinates=_reduce((ROLL, STEER)),
+        speeds=_reduce(INDEPENDENT),
+        method="appell",
+        accelerations=steady,
+    )
 
 
 LEAN_STEER = (0, 1, 2, 4)  # roll, steer, d roll, d steer within the linearised state
