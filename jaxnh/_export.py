@@ -286,7 +286,9 @@ def one_shot_jit(fn: _F) -> _F:
             return fn(*args, **kwargs)
         if is_traced(args, kwargs):  # under vmap or grad: compiled, without the options
             return plain(*args, **kwargs)
-        out = exported_call(fn, args, kwargs, name=fn.__name__, compiler_options=ONE_SHOT)
+        out = exported_call(
+            fn, args, kwargs, name=fn.__name__, compiler_options=ONE_SHOT, memo=_static_memo(args, kwargs)
+        )
         return jitted(*args, **kwargs) if out is None else out
 
     def lower(*args, **kwargs):
@@ -304,6 +306,21 @@ def one_shot_jit(fn: _F) -> _F:
 
     call.lower = lower  # pyright: ignore[reportAttributeAccessIssue]
     return call  # pyright: ignore[reportReturnType]
+
+
+def _static_memo(args, kwargs) -> Any:
+    """A hashable stand-in for everything static in a call's arguments (their tree structure, with
+    the static fields of equinox Modules, and each leaf that is not an array, with its type), for
+    `exported_call` to find the program of a later call with equal static arguments without
+    fingerprinting them again; None when something static cannot be hashed."""
+    leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+    static = tuple((type(x), x) for x in leaves if not isinstance(x, (jax.Array, np.ndarray, np.generic)))
+    memo = (treedef, static)
+    try:
+        hash(memo)
+    except TypeError:
+        return None
+    return memo
 
 
 def compile_ahead(jobs) -> None:

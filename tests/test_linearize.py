@@ -160,3 +160,11 @@ def test_knife_edge_in_motion_and_parts_compiled_once(caplog):
         rates = [w, g * np.sin(al) * np.cos(phi) ** 2 - u * w * tan, 0]
         np.testing.assert_allclose(lin.rates, rates, rtol=1e-13, atol=1e-13)
         assert lin.states == ("phi", "dx", "dphi")
+    # other static arguments, other programs (the position x kept as well: it moves at ẋ and enters
+    # nothing), also on later calls that skip fingerprinting the static arguments
+    for _ in range(2):
+        big = linearize(mech, p, q, qd, coordinates=(0, 2), speeds=(0, 2))
+        assert big.states == ("x", "phi", "dx", "dphi")
+        np.testing.assert_allclose(big.A[1:, 1:], lin.A, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(big.A[:, 0], 0.0, atol=1e-13)
+        np.testing.assert_allclose(big.A[0], [0, 0, 1, 0], atol=1e-13)
