@@ -10,8 +10,9 @@ Run from the repository root:
 Writes benchmarks/BICYCLE.md and benchmarks/results/bicycle_cost.json
 (`--out` to change the Markdown path).
 
-Measured, wall clock, in this process (first calls include tracing and XLA
-compilation; the machine's load matters, so the script also prints CPU time):
+Measured, wall clock, in this process, with an empty compilation-cache folder
+unless `--warm-cache` (first calls include tracing and XLA compilation; the
+machine's load matters, so the script also prints CPU time):
 
 1. jaxnh: from the model definition (`jaxnh.models.bicycle`: four rigid bodies,
    one holonomic and four nonholonomic contact constraints) to the 4×4
@@ -287,7 +288,8 @@ def write_report(path, jx, sy, sympy_status, machine):
         "Written by `python benchmarks/bicycle_cost.py` (see its docstring for what is timed). "
         f"Machine: {machine['cores']} cores, load average {machine['load_average'][0]:.1f} at the start "
         f"(the machine is shared: wall times include waiting for a core, CPU times are all threads of the process); "
-        f"JAX {machine['jax']}, {machine['date']}.",
+        f"JAX {machine['jax']}, {machine['date']}. jaxnh's compilation cache: {machine.get('cache', 'not recorded')} "
+        "(first calls trace and compile; the programs shipped with jaxnh are read either way).",
         "",
     ]
     if jx:
@@ -347,8 +349,18 @@ def main():
         default=str(pathlib.Path(__file__).resolve().parent / "BICYCLE.md"),
         help="Markdown report (default benchmarks/BICYCLE.md)",
     )
+    ap.add_argument(
+        "--warm-cache",
+        action="store_true",
+        help="use the user's compilation cache folder (default: an empty one, so that first calls are first calls)",
+    )
     args = ap.parse_args()
+    if not args.warm_cache:  # before jaxnh is imported: its cache folder is set up at import
+        import tempfile
+
+        os.environ["JAXNH_CACHE_DIR"] = os.path.join(tempfile.mkdtemp(prefix="jaxnh-bicycle-cost-"), "cache")
     machine = _machine()
+    machine["cache"] = "the user's cache folder" if args.warm_cache else "an empty cache folder"
     print(f"CPU cores: {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
     jx = {} if args.no_jaxnh else jaxnh_costs()
     if jx:
