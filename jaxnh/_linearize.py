@@ -27,20 +27,21 @@ bicycle running straight: the wheels turn, the position advances) as long
 as the chosen state is steady there; `Linearization.rates` holds `ẋ` at the
 operating point to check that it is.
 
-The derivatives are taken in two parts, joined by the chain rule: the
-kinematics (the configuration completed by `complete`, q̇ = B v + β0 and
-β = q̈ at v̇ = 0, with their Jacobians in x, by one forward pass over the n
-state directions) and the dynamics (F = M q̈ + h − Q, or ∂S/∂q̈ − Q, with its
-Jacobians in q, q̇ and q̈, by one forward pass). Nested automatic
-differentiation makes large programs: for the Whipple bicycle (8
-coordinates, 5 constraints) the kinematics are some 11k traced operations,
-the dynamics 7k and the checks of a concrete call 5k. A concrete call
-compiles the three programs at the same time (`jaxnh._export.compile_ahead`,
-with XLA's cheapest settings, `ONE_SHOT`): on a 2-core CPU in about the
-2–2.5 s of the largest, where the linearisation as one program took 5 s.
-They are compiled once per structure: later calls reuse them (about 6 ms for
-the bicycle); under a caller's `jit` the parts are traced into its program,
-and `jax.vmap` over speeds or parameters works as usual.
+The derivatives are taken in parts, joined by the chain rule: the
+configuration completed by `complete` and its derivatives in the kept
+coordinates; the kinematics (q̇ = B v + β0 and β = q̈ at v̇ = 0, with their
+Jacobians in (q, v), by one forward pass); and the dynamics (F = M q̈ + h − Q,
+or ∂S/∂q̈ − Q, with its Jacobians in q, q̇ and q̈, by one forward pass).
+Nested automatic differentiation makes large programs: for the Whipple
+bicycle (8 coordinates, 5 constraints) the kinematics are some 9k traced
+operations, the dynamics 7k, the checks of a concrete call 5k and the
+configuration 1.4k; as one program they took 5 s to compile on a 2-core CPU
+even with XLA's cheapest settings (`jaxnh._export.ONE_SHOT`). A concrete
+call compiles the parts at the same time, one per core
+(`jaxnh._export.compile_ahead`): in about 3 s on 2 cores. They are compiled
+once per structure and later calls reuse them (about 5 ms for the bicycle);
+under a caller's `jit` the parts are traced into its program, and `jax.vmap`
+over speeds or parameters works as usual.
 """
 
 from __future__ import annotations
