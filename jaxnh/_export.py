@@ -273,7 +273,9 @@ def one_shot_jit(fn: _F) -> _F:
     structure (a linearisation, a fit's starting guess and error bands, a check), which are
     also kept and shipped as exported programs (`exported_call`) when the arguments allow.
     Inside a caller's `jit` it is traced into the caller's program (JAX refuses compiler options on
-    a nested jit); under `vmap` or `grad` it is the ordinary `filter_jit`, without the options."""
+    a nested jit); under `vmap` alone (every traced argument batched values, nothing else) it is
+    compiled with the options, for the batch; under `grad` and other transformations it is the
+    ordinary `filter_jit`, without them."""
     from ._status import is_traced, under_jit
 
     # (equinox's type hints of filter_jit leave out the keyword arguments it passes on to jax.jit)
@@ -284,8 +286,14 @@ def one_shot_jit(fn: _F) -> _F:
     def call(*args, **kwargs):
         if under_jit():  # part of the caller's program (JAX takes compiler options only at the top)
             return fn(*args, **kwargs)
-        if is_traced(args, kwargs):  # under vmap or grad: compiled, without the options
-            return plain(*args, **kwargs)
+        if is_traced(args, kwargs):
+            if _only_batched(args, kwargs):  # an eager vmap: compiled for the batch, with the options
+                try:
+                    return jitted(*args, **kwargs)
+                except ValueError as e:  # a transformation below the vmap after all
+                    if "compiler_options" not in str(e):
+                        raise
+            return plain(*args, **kwargs)  # under grad and the like: without the options
         out = exported_call(
             fn, args, kwargs, name=fn.__name__, compiler_options=ONE_SHOT, memo=_static_memo(args, kwargs)
         )
@@ -306,6 +314,22 @@ def one_shot_jit(fn: _F) -> _F:
 
     call.lower = lower  # pyright: ignore[reportAttributeAccessIssue]
     return call  # pyright: ignore[reportReturnType]
+
+
+def _only_batched(*trees) -> bool:
+    """Whether every traced leaf is `jax.vmap`'s batched value of a concrete array (an eager vmap,
+    perhaps nested, and no other transformation), judged by JAX's tracer classes; False when they
+    cannot be found (another JAX version)."""
+    try:
+        from jax._src.interpreters.batching import BatchTracer
+    except ImportError:
+        return False
+    for x in jax.tree_util.tree_leaves(trees):
+        while isinstance(x, BatchTracer):
+            x = x.val
+        if isinstance(x, jax.core.Tracer):
+            return False
+    return True
 
 
 def _static_memo(args, kwargs) -> Any:

@@ -237,7 +237,9 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
         # program for (an exported program's outputs are committed to a device, and JAX would
         # compile anew for those)
         q_op, dq_dc = np.asarray(q_op), np.asarray(dq_dc)
-    x0, K, dK = _kinematics(mech, params, q_op, dq_dc, qd, t, coordinates, speeds)
+    # traced values cannot be checked on the host: the kinematics check in-graph that constraints
+    # declared linear are, and come out NaN (and so everything after them) if they are not
+    x0, K, dK = _kinematics(mech, params, q_op, dq_dc, qd, t, coordinates, speeds, not checked)
     if checked:
         K, dK = jax.tree_util.tree_map(np.asarray, (K, dK))
     if accelerations is None:
@@ -250,14 +252,7 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
         # E is affine in v̇: the first pass gives the operating accelerations, the second the
         # matrices there (and `rates`, one more correction, to show that they are right)
         A, mass, damping, stiffness, rates, _ = _dynamics(mech, params, K, dK, vd_next, t, method, coordinates)
-    out = (A, mass, damping, stiffness, rates, x0)
-    m = K[2].shape[0] - K[2].shape[1]
-    if m and not mech.nonlinear_constraints and not checked:
-        # constraints declared linear that are not would give a finite, wrong matrix: NaN instead
-        # (the eager path raises a ValueError for this before, via `check_values`)
-        affine = constraints_affine(mech, K[0], qd, t, params)
-        out = tuple(jnp.where(affine, x, jnp.nan) for x in out)
-    return (*out, quality, terms)
+    return A, mass, damping, stiffness, rates, x0, quality, terms
 
 
 def _checks_traced(mech, params, q, qd, t, speeds):
@@ -286,13 +281,15 @@ def _configuration_traced(params, q, t, coordinates, complete):
     return value_and_jacfwd(configuration, pick(q, coordinates))
 
 
-def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds):
+def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds, check_affine=False):
     """The velocity map at the operating configuration q and its first derivatives in the state.
 
     `dq_dc`: ∂q/∂q_C (s, nc), how the configuration moves with the kept coordinates. Returns the
     state x0 = (q_C, v) (n,), K = (q, q̇, B, β) (β: q̈ at v̇ = 0) and their Jacobians dK/dx
     (`(s, n)`, `(s, n)`, `(s, n, k)`, `(s, n)`): what the constraints contribute, by one
-    forward-mode pass over the s + k directions of (q, v), and the chain rule."""
+    forward-mode pass over the s + k directions of (q, v), and the chain rule. `check_affine`:
+    all of them NaN when constraints declared linear in the velocities are not (values that
+    cannot be checked on the host: a finite, wrong linearisation otherwise)."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
     k = s - m
@@ -314,8 +311,11 @@ def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds):
         axis=0,
     )
     dK = (dz[:s], Jqdot @ dz, jnp.einsum("sjk,jn->snk", JB, dz), Jbeta @ dz)
-    x0 = jnp.concatenate([pick(q, coordinates), v0])
-    return x0, (q, qdot, B, beta), dK
+    out = (jnp.concatenate([pick(q, coordinates), v0]), (q, qdot, B, beta), dK)
+    if check_affine and m and not mech.nonlinear_constraints:
+        affine = constraints_affine(mech, q, qd, t, params)
+        out = jax.tree_util.tree_map(lambda x: jnp.where(affine, x, jnp.nan), out)
+    return out
 
 
 def _dynamics_traced(mech, params, K, dK, vd, t, method, coordinates):
@@ -386,7 +386,7 @@ def _compile_parts(mech, params, q, qd, t, m, coordinates, speeds, method, compl
     nc = len(coordinates)
     q_op, dq_dc = (z(s), np.eye(s, dtype=q.dtype)[:, list(coordinates)]) if complete is None else (z(s), z((s, nc)))
     jobs = [  # the largest first
-        (_kinematics, (mech, params, q_op, dq_dc, qd, t, coordinates, speeds), None),
+        (_kinematics, (mech, params, q_op, dq_dc, qd, t, coordinates, speeds, False), None),
         (_dynamics, (mech, params, K, dK, z(k), t, method, coordinates), None),
         (_checks, (mech, params, q, qd, t, speeds), None),
     ]

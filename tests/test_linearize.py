@@ -114,6 +114,9 @@ def test_refusals_eagerly_and_under_transformations():
         linearize(bent, WP, q, jnp.array([0.25, 1.0]), coordinates=(0,), speeds=(1,))
     traced = jax.jit(lambda v: linearize(bent, WP, q, v, coordinates=(0,), speeds=(1,)).A)(jnp.array([0.25, 1.0]))
     assert np.all(np.isnan(np.asarray(traced)))
+    # an eager vmap (the parts compiled for the batch, the composition run eagerly): the same
+    batched = jax.vmap(lambda v: linearize(bent, WP, q, v, coordinates=(0,), speeds=(1,)))(jnp.array([[0.25, 1.0]] * 2))
+    assert all(np.all(np.isnan(np.asarray(x))) for x in (batched.A, batched.mass, batched.rates, batched.state))
 
 
 def test_knife_edge_in_motion_and_parts_compiled_once(caplog):
