@@ -230,8 +230,8 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
         quality, terms = jnp.ones((), q.dtype), None
     if complete is not None:
         q_op, dq_dc = _configuration(params, q, t, coordinates, complete)
-    else:  # the coordinates move alone
-        q_op, dq_dc = q, np.eye(q.shape[0], dtype=q.dtype)[:, list(coordinates)]
+    else:
+        q_op, dq_dc = q, _alone(q.shape[0], coordinates, q.dtype)
     if checked:
         # concrete: outputs passed on as NumPy arrays, as `_compile_parts` compiled the next
         # program for (an exported program's outputs are committed to a device, and JAX would
@@ -279,6 +279,11 @@ def _configuration_traced(params, q, t, coordinates, complete):
         return complete(qq, t, params)
 
     return value_and_jacfwd(configuration, pick(q, coordinates))
+
+
+def _alone(s, coordinates, dtype):
+    """∂q/∂q_C (s, nc) when the kept coordinates move alone (no holonomic completion): unit columns."""
+    return np.eye(s, dtype=dtype)[:, list(coordinates)]
 
 
 def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds, check_affine=False):
@@ -383,10 +388,9 @@ def _compile_parts(mech, params, q, qd, t, m, coordinates, speeds, method, compl
         return
     z = functools.partial(np.zeros, dtype=q.dtype)  # stand-ins for outputs of the parts before
     K, dK = (z(s), z(s), z((s, k)), z(s)), (z((s, n)), z((s, n)), z((s, n, k)), z((s, n)))
-    nc = len(coordinates)
-    q_op, dq_dc = (z(s), np.eye(s, dtype=q.dtype)[:, list(coordinates)]) if complete is None else (z(s), z((s, nc)))
+    dq_dc = _alone(s, coordinates, q.dtype) if complete is None else z((s, len(coordinates)))
     jobs = [  # the largest first
-        (_kinematics, (mech, params, q_op, dq_dc, qd, t, coordinates, speeds, False), None),
+        (_kinematics, (mech, params, z(s), dq_dc, qd, t, coordinates, speeds, False), None),
         (_dynamics, (mech, params, K, dK, z(k), t, method, coordinates), None),
         (_checks, (mech, params, q, qd, t, speeds), None),
     ]
