@@ -7,7 +7,6 @@
 # make lint       — ruff check, ruff format --check, pyright
 # make bench      — regenerate benchmarks/RESULTS.md and figures (20–60 min, by load)
 # make bench-quick — the short suite (a few minutes), written to benchmarks/quick/
-# make programs   — rebuild the exported programs shipped in jaxnh/programs/ (after changing jaxnh's sources)
 
 PYTHON ?= python3
 VENV := .venv
@@ -15,7 +14,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 MIN_VENV := .venv-min
 
-.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick programs clean
+.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick clean
 
 $(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,9 +34,6 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest tests
-
-programs: $(STAMP)
-	$(PY) -c "import jaxnh._export as e; e.main()"
 
 test-quick: $(STAMP)
 	$(PY) -m pytest tests -m "not slow"

@@ -1,246 +1,203 @@
-"""Shared machinery of the benchmarks: solvers, compiled solves, interleaved timing, output.
+"""Shared machinery of the benchmark suite: timing, fresh processes, errors, output, the source stamp.
 
-Timing rules (SciMLBenchmarks' work-precision methodology): every JAX function is compiled ahead
-of time (`jit(...).lower(...).compile()`, whose duration is the compile time
-reported), then called repeatedly; contenders are interleaved round by round so
-that load from other processes hits them alike, and times are medians over
-rounds. Ratios are medians of the per-round ratios.
+Timing rules. In-process times are process CPU time (`time.process_time`),
+medians over interleaved rounds after compilation: contenders take turns
+round by round, so load from other processes hits them alike, and a ratio is
+the median of the per-round ratios. Wall times are recorded too. The machine
+these run on is shared: wall time there mostly measures waiting for a core,
+CPU time what a call costs on an idle core.
 
-The machine these run on is shared (2 cores, several busy processes), so a
-wall-clock time mostly measures how long a call waited for a core: a 3.5 ms
-solve took 3.3–20 ms of wall time but 3.3–3.7 ms of process CPU time. Every
-time is therefore recorded both ways; tables and ratios use the CPU time
-(`time.process_time`, all threads of the process), which is what the call
-costs on an idle core.
+Each benchmark process is pinned to one core with XLA's thread pools off
+before JAX starts (XLA's idle pool threads spin and inflate CPU times; these
+solves are too small to gain from threads); `JAXNH_BENCH_XLA_THREADS=default`
+keeps XLA's own setting. Fresh processes (`fresh`) get the user's defaults
+back: every core, the original XLA flags, empty cache folders.
 """
 
 from __future__ import annotations
 
 import datetime
+import hashlib
 import json
 import os
 import pathlib
 import platform
+import re
+import subprocess
+import sys
+import tempfile
 import time
-from typing import Callable
-
-
-# XLA on CPU runs independent operations of one program on a thread pool whose
-# idle workers spin: the process then burns CPU time waiting. Measured here: a
-# "lagrange" solve in the unrolled Tsit5 took 49–130 ms of CPU time (median 63)
-# with XLA's thread pool on both cores, 45–55 ms (median 51) with the process
-# pinned to one core; XLA's flags below alone did not remove the spread. So each
-# benchmark process is pinned to one core before JAX starts (XLA sizes its pools
-# from the affinity mask) and its CPU time is what a call costs on that core.
-# These solves are too small to gain from threads. JAXNH_BENCH_XLA_THREADS=default
-# keeps XLA's own setting (no pinning, no flags).
-XLA_SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
-PINNED_CPU = None
-if os.environ.get("JAXNH_BENCH_XLA_THREADS") != "default":
-    if "intra_op_parallelism" not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + XLA_SINGLE_THREAD).strip()
-    if hasattr(os, "sched_setaffinity"):
-        _cpus = sorted(os.sched_getaffinity(0))
-        PINNED_CPU = _cpus[os.getpid() % len(_cpus)]  # spread concurrent benchmark processes
-        os.sched_setaffinity(0, {PINNED_CPU})
-
-import diffrax  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-import jaxnh as nh  # noqa: E402
-from jaxnh.solvers import DOP853, Tsit5  # noqa: E402
 
 
 HERE = pathlib.Path(__file__).resolve().parent
-# Where JSON results, figures and RESULTS.md go: benchmarks/ itself (the committed record), or the
-# folder in $JAXNH_BENCH_OUT (`make bench-quick` uses benchmarks/quick/ so a short run does not
-# overwrite the full results).
+ROOT = HERE.parent
+_ENV0 = dict(os.environ)  # before the pinning below: what fresh processes get back
+_CPUS0 = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+PINNED_CPU = None
+if os.environ.get("JAXNH_BENCH_XLA_THREADS") != "default":
+    if "intra_op_parallelism" not in os.environ.get("XLA_FLAGS", ""):
+        flags = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flags).strip()
+    if _CPUS0:
+        PINNED_CPU = _CPUS0[os.getpid() % len(_CPUS0)]
+        os.sched_setaffinity(0, {PINNED_CPU})
+
+import numpy as np  # noqa: E402
+
+
+# Where JSON results, figures and RESULTS.md go: benchmarks/ itself, or $JAXNH_BENCH_OUT
+# (`make bench-quick` writes to benchmarks/quick/ so a short run leaves the record alone).
 OUT = pathlib.Path(os.environ["JAXNH_BENCH_OUT"]).resolve() if os.environ.get("JAXNH_BENCH_OUT") else HERE
 RESULTS = OUT / "results"
 FIGURES = OUT / "figures"
-
-
-# label -> factory; "Tsit5u" is jaxnh's unrolled Tsit5 (jaxnh.solvers.Tsit5), "Tsit5" diffrax's
-SOLVERS: dict[str, Callable] = {
-    "Tsit5": diffrax.Tsit5,
-    "Tsit5u": Tsit5,
-    "Dopri5": diffrax.Dopri5,
-    "Dopri8": diffrax.Dopri8,
-    "DOP853": DOP853,
-    "Kvaerno5": diffrax.Kvaerno5,
-}
-SOLVER_LABELS = {
-    "Tsit5": "diffrax Tsit5",
-    "Tsit5u": "jaxnh Tsit5 (unrolled)",
-    "Dopri5": "diffrax Dopri5",
-    "Dopri8": "diffrax Dopri8",
-    "DOP853": "jaxnh DOP853",
-    "Kvaerno5": "diffrax Kvaerno5",
-}
-
-
-def tol_pair(rtol: float) -> tuple[float, float]:
-    """(rtol, atol) of a sweep point: atol = rtol / 100, as simulate's defaults (1e-8, 1e-10)."""
-    return rtol, rtol / 100
-
-
-# --------------------------------------------------------------------------- compiled solves
-
-
-def jaxnh_solver_fn(
-    mech, method, q0, qd0, params, ts, solver, *, independent=None, record=(), max_steps=100_000, adjoint=None
-):
-    """A jitted `f(params, y0, rtol, atol) -> (q, qd, num_steps, recorded)` around `simulate`.
-
-    The tolerances are traced (they enter through the step-size controller), so
-    one compilation serves the whole sweep; `y0` is `(q0, qd0)`. Returns (f, y0).
-    """
-    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-
-    def f(p, y0, rtol, atol):
-        sol = nh.simulate(
-            mech,
-            p,
-            y0[0],
-            y0[1],
-            ts,
-            method,
-            solver=solver,
-            record=tuple(record),
-            independent=independent,
-            max_steps=max_steps,
-            adjoint=adjoint,
-            throw=False,
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        )
-        out = {k: getattr(sol, k) for k in record}
-        return sol.q, sol.qd, sol.stats["num_steps"], out
-
-    return jax.jit(f), (q0, qd0)
-
-
-def hand_solver_fn(vector_field, unpack, ts, solver, max_steps=100_000):
-    """A jitted `f(params, y0, rtol, atol) -> (q, qd, num_steps, {})` for a hand-written vector field."""
-
-    def f(p, y0, rtol, atol):
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field),
-            solver,
-            ts[0],
-            ts[-1],
-            None,
-            y0,
-            args=p,
-            saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-            max_steps=max_steps,
-            throw=False,
-        )
-        q, qd = unpack(sol.ys, ts, p)
-        return q, qd, sol.stats["num_steps"], {}
-
-    return jax.jit(f)
-
-
-def compile_aot(jitted, *args):
-    """Compile `jitted` for `args` ahead of time: (compiled callable, {"cpu": s, "wall": s})."""
-    compiled, cpu, wall = timed(lambda: jitted.lower(*args).compile())
-    return compiled, {"cpu": cpu, "wall": wall}
-
-
-def block(x):
-    return jax.block_until_ready(x)
+RTOL, ATOL = 1e-8, 1e-10  # simulate's defaults: every contender of a default-settings row uses them
 
 
 # --------------------------------------------------------------------------- timing
 
 
-def interleave(calls: dict, rounds: int = 7, budget: float | None = None, min_rounds: int = 3) -> dict:
-    """Time each zero-argument callable once per round, in turn, for `rounds` rounds
-    (fewer if `budget` seconds of wall time run out after `min_rounds`).
-
-    Returns name -> {"cpu": [...], "wall": [...]} in seconds. CPU time is the
-    process's (`time.process_time`): on a shared machine it is what a call costs
-    without the waiting for a core that wall time also counts.
-    """
-    times = {k: {"cpu": [], "wall": []} for k in calls}
+def interleave(calls: dict, rounds: int = 7, budget: float | None = None, min_rounds: int = 5) -> dict:
+    """Call each zero-argument callable once per round, in turn; name -> {"cpu": [...], "wall": [...]} (s).
+    Stops after `min_rounds` once `budget` seconds of wall time have passed."""
+    out = {k: {"cpu": [], "wall": []} for k in calls}
     start = time.perf_counter()
     for r in range(rounds):
         for k, fn in calls.items():
             w0, c0 = time.perf_counter(), time.process_time()
             fn()
-            times[k]["cpu"].append(time.process_time() - c0)
-            times[k]["wall"].append(time.perf_counter() - w0)
+            out[k]["cpu"].append(time.process_time() - c0)
+            out[k]["wall"].append(time.perf_counter() - w0)
         if budget is not None and r + 1 >= min_rounds and time.perf_counter() - start > budget:
             break
-    return times
+    return out
 
 
-def timed(fn):
-    """(result, cpu seconds, wall seconds) of one call."""
-    w0, c0 = time.perf_counter(), time.process_time()
-    out = fn()
-    return out, time.process_time() - c0, time.perf_counter() - w0
+def repeat(fn, seconds: float = 0.05):
+    """A callable running `fn` n times (n so that one call of it takes about `seconds`), and n: times of
+    sub-millisecond calls are then per call after dividing by n."""
+    fn()
+    t0 = time.process_time()
+    fn()
+    n = max(1, int(seconds / max(time.process_time() - t0, 1e-6)))
+
+    def many():
+        for _ in range(n):
+            fn()
+
+    return many, n
 
 
 def median(xs) -> float:
-    return float(np.median(np.asarray(xs)))
+    return float(np.median(np.asarray(xs, dtype=float)))
 
 
 def paired_ratio(num, den) -> float:
-    """Median over rounds of num[i] / den[i] (both timed in the same round)."""
+    """Median over rounds of num[i] / den[i] (timed in the same round)."""
     n = min(len(num), len(den))
-    return float(np.median(np.asarray(num[:n]) / np.asarray(den[:n])))
+    return float(np.median(np.asarray(num[:n], float) / np.asarray(den[:n], float)))
 
 
 def max_error(q, qd, q_ref, qd_ref) -> float:
-    """Max abs error over the report times, coordinates and velocities."""
-    return float(
-        max(np.max(np.abs(np.asarray(q) - np.asarray(q_ref))), np.max(np.abs(np.asarray(qd) - np.asarray(qd_ref))))
+    """Largest absolute error over the report times, coordinates and velocities."""
+    return float(max(np.max(np.abs(np.asarray(q) - q_ref)), np.max(np.abs(np.asarray(qd) - qd_ref))))
+
+
+def growth_exponent(ns, ts) -> float:
+    """Least-squares slope of log t against log n: t ∝ n^k."""
+    return float(np.polyfit(np.log(np.asarray(ns, float)), np.log(np.asarray(ts, float)), 1)[0])
+
+
+# --------------------------------------------------------------------------- fresh processes
+
+
+def fresh(code: str, env: dict | None = None, timeout: float = 1800) -> dict:
+    """Run `code` in a new Python process with the user's defaults (every core, the original XLA flags,
+    JAX's compilation cache off, `JAXNH_CACHE_DIR` an empty folder, unless `env` says otherwise) and
+    return the JSON object it prints last.
+
+    `code` fills a dict `OUT`, printed as JSON by `FRESH_TAIL` with "wall" (s, from before the first
+    import) and "cpu" (s, the process's CPU time) added; `IMPORTED` in `code` records both at that point
+    as "import" and "import_cpu".
+    """
+    e = {k: v for k, v in _ENV0.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAXNH_CACHE"))}
+    e["PYTHONPATH"] = os.pathsep.join([str(ROOT), e.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    e.update(env or {})
+    e.setdefault("JAXNH_CACHE_DIR", cache_dirs()[0])  # empty: no program compiled earlier can be found
+
+    unpin = f"__import__('os').sched_setaffinity(0, {set(_CPUS0)!r})\n" if _CPUS0 else ""
+    proc = subprocess.run(
+        [sys.executable, "-c", unpin + FRESH_HEAD + code + FRESH_TAIL],
+        capture_output=True,
+        text=True,
+        env=e,
+        cwd=str(ROOT),
+        timeout=timeout,
     )
+    if proc.returncode != 0:
+        raise RuntimeError(f"fresh process failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def time_at_error(points, target: float) -> float | None:
-    """Run time at a given error by log-log interpolation between the two sweep points
-    that bracket it (points: iterable of (error, time)); None when not bracketed."""
-    pts = sorted((e, t) for e, t in points if e > 0 and np.isfinite(e))
-    for (e0, t0), (e1, t1) in zip(pts, pts[1:]):
-        if e0 <= target <= e1:
-            if e1 == e0:
-                return float(min(t0, t1))
-            w = (np.log(target) - np.log(e0)) / (np.log(e1) - np.log(e0))
-            return float(np.exp(np.log(t0) + w * (np.log(t1) - np.log(t0))))
-    return None
+FRESH_HEAD = "import time as _t\n_w0, _c0 = _t.perf_counter(), _t.process_time()\n"
+IMPORTED = 'OUT = {"import": _t.perf_counter() - _w0, "import_cpu": _t.process_time() - _c0}'
+FRESH_TAIL = (
+    "\nimport json as _j\nOUT.update(wall=_t.perf_counter() - _w0, cpu=_t.process_time() - _c0)\n"
+    "print(_j.dumps(OUT, default=lambda x: __import__('numpy').asarray(x).tolist()))\n"
+)
 
 
-# --------------------------------------------------------------------------- scipy
+def cache_dirs(n: int = 1) -> list:
+    """`n` empty, private temporary folders (removed at exit)."""
+    out = []
+    for _ in range(n):
+        d = tempfile.TemporaryDirectory(prefix="jaxnh-bench-cache-")
+        _KEEP.append(d)
+        out.append(d.name)
+    return out
 
 
-def scipy_solve(f, y0, ts, method: str, rtol: float, atol: float):
-    from scipy.integrate import solve_ivp
-
-    ts = np.asarray(ts)
-    sol = solve_ivp(f, (ts[0], ts[-1]), np.asarray(y0, dtype=float), method=method, t_eval=ts, rtol=rtol, atol=atol)
-    return sol
+_KEEP: list = []
 
 
-# --------------------------------------------------------------------------- output
+# --------------------------------------------------------------------------- the stamp
+
+
+def source_digest(root: pathlib.Path = ROOT) -> str:
+    """SHA-256 (first 16 hex digits) of every jaxnh/**/*.py file's path and contents."""
+    h = hashlib.sha256()
+    for f in sorted((root / "jaxnh").rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+DIGEST_LINE = re.compile(r"source digest of jaxnh/: `([0-9a-f]{16})`")
+
+
+def stale(results_path=None) -> bool:
+    """True when a results file (benchmarks/RESULTS.md by default) was measured on other sources than
+    today's jaxnh/ (its stamped digest differs from `source_digest()`), or carries no stamp."""
+    path = pathlib.Path(results_path) if results_path is not None else HERE / "RESULTS.md"
+    if not path.exists():
+        return True
+    m = DIGEST_LINE.search(path.read_text())
+    return m is None or m.group(1) != source_digest()
 
 
 def machine() -> dict:
     cpu = "unknown"
     try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
         pass
-    import diffrax as dfx
-    import equinox
-    import jaxlib
+
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], capture_output=True, text=True, cwd=ROOT, timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    import diffrax
+    import jax
     import scipy
 
     return dict(
@@ -248,54 +205,22 @@ def machine() -> dict:
         cores=os.cpu_count(),
         platform=platform.platform(),
         python=platform.python_version(),
-        jax=jax.__version__,
-        jaxlib=jaxlib.__version__,
-        diffrax=dfx.__version__,
-        equinox=equinox.__version__,
-        numpy=np.__version__,
-        scipy=scipy.__version__,
-        jaxnh=nh.__version__,
-        devices=[str(d) for d in jax.devices()],
-        load_average=list(os.getloadavg()),
-        xla_flags=os.environ.get("XLA_FLAGS", ""),
-        pinned_cpu=PINNED_CPU,
+        versions=dict(jax=jax.__version__, diffrax=diffrax.__version__, numpy=np.__version__, scipy=scipy.__version__),
+        load_average=[round(x, 2) for x in os.getloadavg()],
         date=datetime.datetime.now().isoformat(timespec="seconds"),
-        jaxnh_revision=_revision(),
+        revision=git("rev-parse", "--short", "HEAD") or "unknown",
+        uncommitted=bool(git("status", "--porcelain", "--untracked-files=all", "jaxnh")),
+        digest=source_digest(),
+        pinned_cpu=PINNED_CPU,
     )
 
 
-def solver_key(solver) -> str:
-    """The SOLVERS label of a solver instance ("Tsit5" is diffrax's, "Tsit5u" jaxnh's unrolled one)."""
-    if isinstance(solver, Tsit5):
-        return "Tsit5u"
-    return type(solver).__name__
-
-
-def _revision() -> str:
-    """git commit of the working tree, with "+changes" when it has uncommitted edits."""
-    import subprocess
-
-    try:
-        root = str(HERE.parent)
-        rev = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=root, timeout=10
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "jaxnh"],
-            capture_output=True,
-            text=True,
-            cwd=root,
-            timeout=10,
-        ).stdout.strip()
-        return (rev or "unknown") + (" + uncommitted changes in jaxnh/" if dirty else "")
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
+# --------------------------------------------------------------------------- output
 
 
 def save(name: str, data: dict) -> pathlib.Path:
     RESULTS.mkdir(parents=True, exist_ok=True)
-    data = dict(data)
-    data.setdefault("machine", machine())
+    data = dict(data, machine=machine())
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(data, indent=1, default=_jsonable))
     return path
@@ -309,14 +234,8 @@ def load(name: str) -> dict | None:
 def _jsonable(x):
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
-    if isinstance(x, (np.ndarray, jax.Array)):
-        return np.asarray(x).tolist()
-    raise TypeError(type(x))
+    return np.asarray(x).tolist()
 
 
 def log(*a):
     print(*a, flush=True)
-
-
-def f64(x):
-    return jnp.asarray(x, dtype=jnp.float64)

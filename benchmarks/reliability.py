@@ -34,6 +34,7 @@ import jax  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
+from jaxnh._base.status import describe  # noqa: E402
 from benchmarks import reliability_cases as R  # noqa: E402
 
 
@@ -492,7 +493,7 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
         add("|---:|---:|---|---:|---:|---:|")
         for c, (code, got, ref) in undeclared:
             err = np.abs(got - ref) / np.abs(ref)
-            st = "success" if code == 0 else nh._status.describe(code)[:40]
+            st = "success" if code == 0 else describe(code)[:40]
             add(f"| {c['p']['c']:.0e} | {c['T']:g} | {st} | " + " | ".join(f"{e:.1e}" for e in err) + " |")
         add("")
     add("CPU time per part (s): " + ", ".join(f"{k} {v:.0f}" for k, v in tally.seconds.items()) + ".")

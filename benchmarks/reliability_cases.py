@@ -40,7 +40,7 @@ from hypothesis import given, HealthCheck, settings, strategies as st
 from scipy.integrate import solve_ivp
 
 import jaxnh as nh
-from jaxnh._status import STATUS
+from jaxnh._base.status import describe, STATUS
 
 
 RIGHT, CLEAR_ERROR, FAILURE, UNCLEAR_ERROR, SILENT_WRONG = (
@@ -1089,7 +1089,7 @@ def run_vmap_grad(cases):
     """(value outcome, gradient outcome) per case, from batched calls of VALUE_AND_GRAD."""
     out = []
     for c, (q, qd, code, g) in zip(cases, batched(cases)):
-        value = judge_solution(c, q, qd, code, nh._status.describe(code))
+        value = judge_solution(c, q, qd, code, describe(code))
         if code != 0:
             finite = [k for k in THETA if np.isfinite(g[k])]
             gradient = (
@@ -1409,7 +1409,7 @@ def _gm_batched(cases, reverse: bool):
 def _judge_gm(c, code, got):
     names = ("phi1(T)", "∂/∂c", "∂/∂J2")
     if code != 0:
-        msg = nh._status.describe(code)
+        msg = describe(code)
         if np.any(np.isfinite(got[1:])):
             return Outcome(SILENT_WRONG, f"{msg[:60]} but finite gradients {got[1:]}")
         return Outcome(FAILURE, f"{msg[:70]}; NaN gradients")

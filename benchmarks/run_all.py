@@ -1,21 +1,27 @@
-"""Run every benchmark, then write the figures and benchmarks/RESULTS.md.
+"""The benchmark suite's one runner: every study, then benchmarks/RESULTS.md and its figures.
 
-    python -m benchmarks.run_all            # the performance suite (what `make bench` runs)
-    python -m benchmarks.run_all --quick    # fewer solvers, tolerances and sizes
-    python -m benchmarks.run_all --only work_precision gradients
-    python -m benchmarks.run_all --all      # also the project's other benchmark scripts
+    python -m benchmarks.run_all            # the suite (`make bench`)
+    python -m benchmarks.run_all --quick    # a short run (`make bench-quick`, written to benchmarks/quick/)
+    python -m benchmarks.run_all --only size first_answer
+    python -m benchmarks.run_all --all      # also the reliability report (RELIABILITY.md)
+    python -m benchmarks.run_all --stale    # is RESULTS.md older than today's jaxnh/? (exit status 1 if so)
 
-Each benchmark runs in its own Python process (no JAX caches shared, one
-failure does not stop the rest). With `--all` the other benchmark scripts of
-the project (stability, calibration, sweeps, bicycle cost: they write their
-own reports, linked from RESULTS.md, and some take tens of minutes) are run
-too when present, with their quick option under `--quick` if they offer one
-(under `--quick` a script without one is skipped).
+Studies (each in its own process; one failure does not stop the rest):
+
+* headline — the variator: `simulate` with defaults against eq. (9) by hand in
+  diffrax, the Appell field per step, SciPy on SymPy's derivation, a numba loop;
+  gradient and batch costs.
+* size — a car pulling N trailers: first answers against SymPy's pipeline,
+  steady solves against SciPy and hand JAX, compile-time growth to N = 32.
+* first_answer — fresh processes, cold and with the compilation cache, against
+  hand-written diffrax programs.
+* precision — work–precision of the rolling ball, Appell against Lagrange.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -23,41 +29,21 @@ import time
 from . import common as C
 
 
-OURS = [
-    "work_precision",
-    "overhead",
-    "field_cost",
-    "throughput",
-    "gradients",
-    "compile_time",
-    "lean_loop",
-    "field_size",
-    "cache_effect",
-]
-ARGS = {"cache_effect": (["--first-answer", "--repeats", "5"], ["--first-answer", "--repeats", "1"])}
-"""(full, quick) arguments of the scripts that do not take plain / --quick."""
-OTHERS = ["stability", "calibration", "sweep_bench", "bicycle_cost"]
-
-
-def _quick_flag(module: str) -> list:
-    """The quick option a script offers (from its --help), if any."""
-    try:
-        out = subprocess.run(
-            [sys.executable, "-m", f"benchmarks.{module}", "--help"],
-            capture_output=True,
-            text=True,
-            cwd=str(C.HERE.parent),
-            timeout=120,
-        )
-    except subprocess.TimeoutExpired:
-        return []
-    return ["--quick"] if "--quick" in out.stdout else []
+STUDIES = ["headline", "size", "first_answer", "precision"]
+EXTRA = ["reliability"]  # writes RELIABILITY.md itself
 
 
 def run(module: str, args: list) -> dict:
     C.log(f"\n=== benchmarks.{module} {' '.join(args)}")
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", *args], cwd=str(C.HERE.parent))
+
+    def unpin():  # this process was pinned by common; a study pins itself and its fresh processes use every core
+        if C._CPUS0:
+            os.sched_setaffinity(0, set(C._CPUS0))
+
+    env = dict(C._ENV0, **({"JAXNH_BENCH_OUT": str(C.OUT)} if C.OUT != C.HERE else {}))
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", *args], cwd=str(C.ROOT), env=env,
+                          preexec_fn=unpin)
     dt = time.perf_counter() - t0
     C.log(f"=== benchmarks.{module}: {'ok' if proc.returncode == 0 else f'FAILED ({proc.returncode})'} in {dt:.0f} s")
     return dict(module=module, args=args, returncode=proc.returncode, seconds=dt)
@@ -65,34 +51,26 @@ def run(module: str, args: list) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="short run of every benchmark")
-    ap.add_argument("--only", nargs="*", help=f"run only these of {OURS + OTHERS}")
-    ap.add_argument("--all", action="store_true", help=f"also run {OTHERS} (long)")
+    ap.add_argument("--quick", action="store_true", help="a short run of every study")
+    ap.add_argument("--only", nargs="*", choices=STUDIES + EXTRA, help="run only these")
+    ap.add_argument("--all", action="store_true", help=f"also {EXTRA}")
+    ap.add_argument("--stale", action="store_true", help="only say whether RESULTS.md is stale")
     a = ap.parse_args(argv)
+    if a.stale:
+        path = C.OUT / "RESULTS.md"
+        old = C.stale(path)
+        C.log(f"{path}: {'STALE (jaxnh/ changed since it was measured)' if old else 'up to date with jaxnh/'}")
+        sys.exit(1 if old else 0)
     t0 = time.perf_counter()
-    log = []
-    for m in OURS:
-        if a.only and m not in a.only:
-            continue
-        full, quick = ARGS.get(m, ([], ["--quick"]))
-        log.append(run(m, quick if a.quick else full))
-    if a.all or (a.only and any(m in OTHERS for m in a.only)):
-        for m in OTHERS:
-            if (a.only and m not in a.only) or not (C.HERE / f"{m}.py").exists():
-                continue
-            flag = _quick_flag(m) if a.quick else []
-            if a.quick and not flag:
-                C.log(f"\n=== benchmarks.{m}: skipped under --quick (it has no quick option)")
-                continue
-            log.append(run(m, flag))
+    todo = [m for m in STUDIES + (EXTRA if a.all else []) if not a.only or m in a.only]
+    if a.quick and any(m in EXTRA for m in todo):
+        C.log(f"run_all: {EXTRA} skipped under --quick (they write their reports beside the suite, not to {C.OUT})")
+        todo = [m for m in todo if m not in EXTRA]
+    log = [run(m, ["--quick"] if a.quick else []) for m in todo]
     log.append(run("report", []))
-    C.save("run_all", dict(runs=log, quick=a.quick, seconds=time.perf_counter() - t0))
     failed = [r["module"] for r in log if r["returncode"] != 0]
-    C.log(
-        f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
-        + (f"FAILED: {failed}" if failed else "all ok")
-        + f"; see {C.OUT / 'RESULTS.md'}"
-    )
+    C.log(f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
+          + (f"FAILED: {failed}" if failed else "all ok") + f"; see {C.OUT / 'RESULTS.md'}")
     sys.exit(1 if failed else 0)
 
 

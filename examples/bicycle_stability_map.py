@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh  # noqa: F401  (64-bit mode)
-from jaxnh._sweep import sweep
+from jaxnh._analysis.sweep import sweep
 from jaxnh.models import bicycle
 
 

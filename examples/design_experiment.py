@@ -30,10 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh as nh
-from jaxnh.identify._experiment import Limits, optimal_design, predict, variator_experiment
+from jaxnh.identify._experiment import Limits, optimal_design, predict
 from jaxnh.identify.data import Record
-from jaxnh.identify.variator import fit_variator
 from jaxnh.models import variator as V
+from jaxnh.models.variator_fit import fit_variator, variator_experiment
 from jaxnh.profiles import Bounded, Fourier, Sampled
 
 

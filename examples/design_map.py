@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxnh as nh
-from jaxnh._sweep import sweep
+from jaxnh._analysis.sweep import sweep
 from jaxnh.models import variator
 from jaxnh.profiles import Fourier
 

@@ -11,10 +11,12 @@ variable `JAXNH_X64=0` before the import to leave JAX's setting alone; to run
 in float32 with 64-bit mode on, pass float32 arrays (q0, qd0, ts and the
 params leaves) — the library keeps the dtype it is given.
 
-Compiled programs are kept in JAX's persistent compilation cache in the
-user's cache directory (`jaxnh._cache`; `JAXNH_CACHE_DIR=off` disables it).
+Importing jaxnh changes no other JAX setting. `jaxnh.enable_compilation_cache()`
+turns on JAX's persistent compilation cache in the user's cache folder, so that
+later processes load compiled programs instead of compiling them again.
 """
 
+import importlib
 import os
 from typing import TYPE_CHECKING
 
@@ -24,24 +26,12 @@ import jax
 if os.environ.get("JAXNH_X64", "1") != "0":
     jax.config.update("jax_enable_x64", True)
 
-from ._cache import setup_compilation_cache  # noqa: E402
-
-
-setup_compilation_cache()
-
-from . import equations, linalg, profiles, rigid, solvers  # noqa: E402
-from ._consistent import consistent_velocities  # noqa: E402
-from ._holonomic import HolonomicMechanism  # noqa: E402
-from ._linearize import Linearization, linearize  # noqa: E402
-from ._mechanism import Mechanism  # noqa: E402
-from ._ode import ODE, ode  # noqa: E402
-from ._sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
-from ._simulate import default_solver, RECORDABLE, simulate, STABILIZATIONS  # noqa: E402
-from ._solution import DenseMotion, Solution  # noqa: E402
-from ._status import InvalidInitialState, SimulationError, STATUS  # noqa: E402
-from ._stepping import MappedSolver, StepMaps  # noqa: E402
-from ._sweep import sweep  # noqa: E402
-from .equations import (  # noqa: E402
+from jaxnh import equations, linalg, profiles, rigid, solvers  # noqa: E402
+from jaxnh._analysis.linearize import Linearization, linearize  # noqa: E402
+from jaxnh._analysis.sweep import sweep  # noqa: E402
+from jaxnh._base.cache import enable_compilation_cache  # noqa: E402
+from jaxnh._base.status import InvalidInitialState, SimulationError, STATUS  # noqa: E402
+from jaxnh._equations import (  # noqa: E402
     accelerations,
     Appell,
     choose_independent,
@@ -50,14 +40,23 @@ from .equations import (  # noqa: E402
     METHODS,
     Substituted,
 )
+from jaxnh._equations.consistent import consistent_velocities  # noqa: E402
+from jaxnh._equations.step_maps import StepMaps  # noqa: E402
+from jaxnh._model.mechanism import Mechanism  # noqa: E402
+from jaxnh._solve.holonomic import HolonomicMechanism  # noqa: E402
+from jaxnh._solve.ode import ODE, ode  # noqa: E402
+from jaxnh._solve.sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
+from jaxnh._solve.simulate import default_solver, RECORDABLE, simulate, STABILIZATIONS  # noqa: E402
+from jaxnh._solve.solution import DenseMotion, Solution  # noqa: E402
+from jaxnh._solve.stepping import MappedSolver  # noqa: E402
 
 
 # Identification and design (optax, plotting helpers) and the built-in models are imported on first
 # use: a script that only simulates does not pay for them (0.1 s of the import).
 if TYPE_CHECKING:
-    from . import design, identify, models
-    from .identify import fit, FitResult, Record
-    from .identify.spec import FitSpec
+    from jaxnh import design, identify, models
+    from jaxnh.identify import fit, FitResult, Record
+    from jaxnh.identify.spec import FitSpec
 
 _LAZY = {
     "models": ("jaxnh.models", None),  # the built-in models: 25 ms of the import
@@ -72,8 +71,6 @@ _LAZY = {
 
 def __getattr__(name):
     if name in _LAZY:
-        import importlib
-
         module, attr = _LAZY[name]
         value = importlib.import_module(module)
         value = value if attr is None else getattr(value, attr)
@@ -83,7 +80,7 @@ def __getattr__(name):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+    return sorted(__all__ + ["__version__"])
 
 
 __version__ = "0.1.0"
@@ -91,6 +88,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Mechanism",
     "HolonomicMechanism",
+    "enable_compilation_cache",
     "Appell",
     "Lagrange",
     "Substituted",

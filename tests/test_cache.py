@@ -1,9 +1,11 @@
-"""The persistent compilation cache folder: where it is, that it is private, and what is refused.
+"""The persistent compilation cache (opt-in): where it is, that it is private, what is refused, and
+that importing jaxnh changes no JAX setting but 64-bit mode.
 
 Everything here is file-system checks and JAX config flags, no compilation,
 except one fresh process that compiles `sin` to see an entry written.
 """
 
+import json
 import os
 import stat
 import subprocess
@@ -13,12 +15,12 @@ import warnings
 import jax
 import pytest
 
-from jaxnh import _cache
-from jaxnh._cache import (
+from jaxnh._base import cache as _cache
+from jaxnh._base.cache import (
     cache_dir,
     check_cache_dir,
+    enable_compilation_cache,
     MIN_COMPILE_TIME_SECS,
-    setup_compilation_cache,
     UnsafeCacheDirWarning,
 )
 
@@ -30,7 +32,7 @@ def flag(name):
 
 @pytest.fixture
 def clean_jax_cache_config():
-    """Run a test that may call setup_compilation_cache and put JAX's flags back afterwards."""
+    """Run a test that may call enable_compilation_cache and put JAX's flags back afterwards."""
     before = (
         flag("jax_compilation_cache_dir"),
         flag("jax_persistent_cache_min_compile_time_secs"),
@@ -44,7 +46,6 @@ def clean_jax_cache_config():
     jax.config.update("jax_compilation_cache_dir", before[0])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
     _cache._active = before[2]
-    _cache._reset_if_checked_without_cache()
 
 
 def mode(path):
@@ -62,7 +63,7 @@ def test_folder_from_environment(tmp_path):
 def test_created_private_even_under_umask_000(tmp_path, clean_jax_cache_config):
     old = os.umask(0)
     try:
-        path = setup_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "deep" / "c")})
+        path = enable_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "deep" / "c")})
     finally:
         os.umask(old)
     assert path == str(tmp_path / "deep" / "c")
@@ -71,11 +72,11 @@ def test_created_private_even_under_umask_000(tmp_path, clean_jax_cache_config):
     # small programs are cached too: the write threshold is lowered from JAX's 1 s
     assert flag("jax_persistent_cache_min_compile_time_secs") == MIN_COMPILE_TIME_SECS
     # a second call keeps the same folder (the CLI calls it again after `import jaxnh` did)
-    assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "other")}) == path
+    assert enable_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "other")}) == path
 
 
 def test_off_changes_nothing(tmp_path, clean_jax_cache_config):
-    assert setup_compilation_cache({"JAXNH_CACHE_DIR": "off", "XDG_CACHE_HOME": str(tmp_path)}) is None
+    assert enable_compilation_cache({"JAXNH_CACHE_DIR": "off", "XDG_CACHE_HOME": str(tmp_path)}) is None
     assert flag("jax_compilation_cache_dir") is None
     assert not (tmp_path / "jaxnh").exists()
 
@@ -83,7 +84,7 @@ def test_off_changes_nothing(tmp_path, clean_jax_cache_config):
 def test_a_user_configured_cache_is_respected(tmp_path, clean_jax_cache_config):
     jax.config.update("jax_compilation_cache_dir", str(tmp_path / "mine"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 2.5)
-    assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "c")}) is None
+    assert enable_compilation_cache({"JAXNH_CACHE_DIR": str(tmp_path / "c")}) is None
     assert flag("jax_compilation_cache_dir") == str(tmp_path / "mine")
     assert flag("jax_persistent_cache_min_compile_time_secs") == 2.5
     assert not (tmp_path / "c").exists()
@@ -91,14 +92,14 @@ def test_a_user_configured_cache_is_respected(tmp_path, clean_jax_cache_config):
 
 def test_user_threshold_kept(tmp_path, clean_jax_cache_config):
     env = {"JAXNH_CACHE_DIR": str(tmp_path / "c"), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "1.0"}
-    assert setup_compilation_cache(env) == str(tmp_path / "c")
+    assert enable_compilation_cache(env) == str(tmp_path / "c")
     assert flag("jax_persistent_cache_min_compile_time_secs") == 1.0
 
 
 def refused(tmp_path, path, match):
-    """setup_compilation_cache warns (naming the problem), returns None and leaves JAX's setting alone."""
+    """enable_compilation_cache warns (naming the problem), returns None and leaves JAX's setting alone."""
     with pytest.warns(UnsafeCacheDirWarning, match=match):
-        assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(path)}) is None
+        assert enable_compilation_cache({"JAXNH_CACHE_DIR": str(path)}) is None
     assert flag("jax_compilation_cache_dir") is None
 
 
@@ -136,7 +137,7 @@ def test_parent_writable_by_others(tmp_path, clean_jax_cache_config, sticky):
     shared.mkdir()
     os.chmod(shared, 0o777 | (stat.S_ISVTX if sticky else 0))
     if sticky:  # like /tmp: others cannot rename our folder away
-        assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(shared / "c")}) == str(shared / "c")
+        assert enable_compilation_cache({"JAXNH_CACHE_DIR": str(shared / "c")}) == str(shared / "c")
         assert mode(shared / "c") == 0o700
     else:
         refused(tmp_path, shared / "c", "which others can write")
@@ -161,15 +162,15 @@ def test_existing_private_folder_is_used(tmp_path, clean_jax_cache_config):
     assert check_cache_dir(str(d)) is None
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert setup_compilation_cache({"JAXNH_CACHE_DIR": str(d)}) == str(d)
+        assert enable_compilation_cache({"JAXNH_CACHE_DIR": str(d)}) == str(d)
 
 
 def test_programs_are_written_and_an_unsafe_folder_is_not_read(tmp_path):
     # fresh processes, so the global JAX setting does not leak into the test session
     code = (
         "import warnings, jax, jax.numpy as jnp\n"
-        "from jaxnh._cache import setup_compilation_cache\n"
-        "p = setup_compilation_cache()\n"
+        "from jaxnh._base.cache import enable_compilation_cache\n"
+        "p = enable_compilation_cache()\n"
         "jax.jit(lambda x: jnp.sin(x) * 2)(1.0).block_until_ready()\n"
         "print(p, jax.config.jax_compilation_cache_dir)\n"
     )
@@ -186,3 +187,22 @@ def test_programs_are_written_and_an_unsafe_folder_is_not_read(tmp_path):
     assert out.stdout.split() == ["None", "None"]
     assert "UnsafeCacheDirWarning" in out.stderr and "writable by others" in out.stderr
     assert sorted(os.listdir(tmp_path / "c")) == sorted(entries)
+
+
+def test_importing_jaxnh_changes_no_jax_setting_but_x64():
+    """A fresh process: every value of `jax.config` is read before and after `import jaxnh`."""
+    code = (
+        "import json, jax\n"
+        "def settings():\n"
+        "    return {k: repr(v) for k, v in jax.config.values.items()}\n"
+        "before = settings()\n"
+        "import jaxnh\n"
+        "after = settings()\n"
+        "print(json.dumps({k: [before.get(k), after.get(k)] for k in set(before) | set(after) "
+        "if before.get(k) != after.get(k)}))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "JAXNH_"))}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    changed = json.loads(out.stdout.strip().splitlines()[-1])
+    assert changed == {"jax_enable_x64": ["False", "True"]}, changed

@@ -120,7 +120,7 @@ def test_nearly_dependent_band_follows_the_dtype():
     """Rows 1 % apart (σ ratio ≈ 0.007) are independent in float64 but nearly dependent in float32,
     where 'lagrange' would drop one (its multiplier pivot ≈ 2e-4 < 1e4 eps); rows repeated exactly
     are dependent in both; rows 1e-9 apart are nearly dependent in float64, repeated in float32."""
-    from jaxnh._checks import nearly_dependent
+    from jaxnh._model.checks import nearly_dependent
 
     def rows(d, dtype):
         return jnp.asarray([[1.0, -1.0, 0.0], [1.0 + d, -1.0, 0.0]], dtype=dtype)

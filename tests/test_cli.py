@@ -52,7 +52,7 @@ def assert_bad_input(code, err, pattern):
 @pytest.fixture
 def no_fit(monkeypatch):
     """Fail loudly if a test reaches the fit: the checks must come first."""
-    import jaxnh.identify.cli as cli
+    import jaxnh._cli.fit as cli
 
     def boom(*a, **k):
         raise AssertionError("the fit was started before the input was checked")
@@ -220,7 +220,7 @@ def test_missing_file_and_help(tmp_path, capsys):
 
 
 def test_a_crash_in_the_fit_is_a_failure_with_valid_json(tmp_path, capsys, monkeypatch):
-    import jaxnh.identify.cli as cli
+    import jaxnh._cli.fit as cli
 
     def crash(*a, **k):
         raise FloatingPointError("overflow in the solver\nsecond line")

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh._sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity
-from jaxnh._simulate import (
+from jaxnh._solve.sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity
+from jaxnh._solve.simulate import (
     default_solver,
     DOP853_BELOW_RTOL,
     DOPRI8_BELOW_RTOL_LOOPED,
@@ -20,7 +20,7 @@ from jaxnh._simulate import (
 )
 from jaxnh.linalg import solve_square
 from jaxnh.models import variator as V
-from jaxnh.solvers import Tsit5
+from jaxnh.solvers import UnrolledTsit5 as Tsit5
 
 
 MECH = V.mechanism()

@@ -13,20 +13,11 @@ import numpy as np
 import pytest
 
 import jaxnh  # noqa: F401  (64-bit mode)
+from jaxnh._cli.design import main as design_main
 from jaxnh.design import fd_gradient
-from jaxnh.identify._design_cli import main as design_main
-from jaxnh.identify._experiment import (
-    ChannelNoise,
-    design_loss,
-    embedded_truth,
-    encoder_noise,
-    experiment,
-    input_spec,
-    Limits,
-    predict,
-    variator_experiment,
-)
+from jaxnh.identify._experiment import ChannelNoise, design_loss, encoder_noise, experiment, input_spec, Limits, predict
 from jaxnh.models import variator as V
+from jaxnh.models.variator_fit import embedded_truth, variator_experiment
 from jaxnh.profiles import Bounded, Constant, Fourier
 
 
@@ -123,7 +114,7 @@ def test_prediction_agrees_with_the_fit_of_the_embedded_record(embedded):
     """The fit reports std = prediction · s (residual scaling, noise estimated from the record):
     s² = 1 ± 0.04 and the noise estimates ± 3 % (n = 1501): agreement within 10 % is expected."""
     from jaxnh.identify import load_default
-    from jaxnh.identify.variator import fit_variator
+    from jaxnh.models.variator_fit import fit_variator
 
     _, _, pred = embedded
     res = fit_variator(load_default())
@@ -162,7 +153,7 @@ def test_design_gradient_matches_central_differences():
     spec = input_spec(p, ("M1",))
     import equinox as eqx
 
-    from jaxnh.design import _forward_value_and_grad
+    from jaxnh.identify.design import _forward_value_and_grad
 
     theta, rest = eqx.partition(p, spec)
     value, g = jax.jit(lambda th: _forward_value_and_grad(lambda x: loss(eqx.combine(x, rest)), th))(theta)
@@ -213,7 +204,7 @@ def test_fit_of_an_informative_record_converges_cleanly():
     """Issue 18's record: M1 = 0.27 sin(0.8πt), otherwise the embedded set-up."""
     import jaxnh as nh
     from jaxnh.identify.data import Record
-    from jaxnh.identify.variator import fit_variator
+    from jaxnh.models.variator_fit import fit_variator
 
     mk = _maker()
     truth = mk.truth()
@@ -245,7 +236,7 @@ def test_fit_tightens_the_ode_tolerance_for_a_very_precise_record():
     say so; the result must contain the truth."""
     from jaxnh.identify import load_default
     from jaxnh.identify.data import Record
-    from jaxnh.identify.variator import fit_variator
+    from jaxnh.models.variator_fit import fit_variator
 
     mk = _maker()
     q = mk.clean_motion()

@@ -187,7 +187,7 @@ def test_reader_random_bytes(data, with_header):
 @settings(FUZZ, max_examples=6)
 @given(data=st.data(), figures=st.booleans())
 def test_cli_refuses_broken_records_and_writes_nothing(monkeypatch, capsys, fault, data, figures):
-    import jaxnh.identify.cli as cli
+    import jaxnh._cli.fit as cli
     from jaxnh.cli import main
 
     def reached(*a, **k):

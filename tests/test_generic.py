@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh.equations.terms import mass_and_velocity_terms
+from jaxnh._equations.terms import mass_and_velocity_terms
 
 
 P = {"m": 1.3, "I": 0.4, "J": 0.2, "r": 0.3, "k": 0.8, "c": 0.05}

@@ -21,8 +21,8 @@ from jaxnh.identify import fit, load_default, noise_level, read_csv, Record, sta
 from jaxnh.identify._fit import fit_solver, GN_STEP_TOL
 from jaxnh.identify.diagnostics import analyse
 from jaxnh.identify.parameters import Parametrisation
-from jaxnh.identify.variator import fit_variator, FREE, params_for, ratio_knots
 from jaxnh.models import variator as V
+from jaxnh.models.variator_fit import fit_variator, FREE, params_for, ratio_knots
 from jaxnh.profiles import CubicSpline, Profile
 
 
@@ -186,7 +186,7 @@ def test_truth_outside_the_model_class_is_reported_with_its_size(outside):
     assert r.converged and r.identifiable
     # ... and says that the misfit exceeds the noise, by how much, in the summary and the command-line table
     assert lof.significant and lof.s2 > lof.threshold and lof.model_error_over_noise > 10
-    from jaxnh.identify.cli import estimate_table
+    from jaxnh._cli.fit import estimate_table
 
     assert "LACK OF FIT" in estimate_table(r) and "LACK OF FIT" in r.summary()
     # The size it reports is the real model error: the rms of the fitted minus the noise-free motion.
@@ -216,7 +216,7 @@ def test_truth_outside_the_model_class_is_reported_with_its_size(outside):
 
 
 def test_cli_on_the_embedded_record(tmp_path):
-    from jaxnh.identify.cli import fit_main
+    from jaxnh._cli.main import fit_main
 
     out = tmp_path / "out"
     code = fit_main(["--json", str(tmp_path / "fit.json"), "--out", str(out), "--quiet"])
@@ -391,7 +391,7 @@ def test_savgol_derivative_matches_scipy():
     savgol_filter(mode="interp") to rounding, inside and at both ends of the record."""
     from scipy.signal import savgol_filter
 
-    from jaxnh.identify.variator import savgol_derivative
+    from jaxnh.models.variator_fit import savgol_derivative
 
     rng = np.random.default_rng(0)
     t = np.linspace(0.0, 6.0, 1501)
@@ -444,6 +444,29 @@ def test_host_arithmetic_in_numpy_matches_the_compiled_one():
         np.testing.assert_allclose(
             h[fin], c[fin], rtol=1e-9, atol=1e-12 * np.max(np.abs(h[fin]), initial=1.0), err_msg=key
         )
+
+
+@pytest.mark.slow
+def test_one_levenberg_marquardt_driver_compiled_and_on_the_host(tmp_path):
+    """`solve_least_squares` (the compiled, vmappable loop) and `solve_least_squares_host` (the
+    Python loop `fit` uses) are the same driver: same answer, steps and result on a small user's
+    mechanism (tests/cli_model.py); the residual count comes from the shapes alone."""
+    import cli_model
+
+    from jaxnh.identify import prepare, solve_least_squares
+    from jaxnh.identify.problem import solve_least_squares_host
+
+    (tmp_path / "d.csv").write_text(cli_model.record_text(n=60))
+    rec = read_csv(tmp_path / "d.csv", coordinates=("a", "b"), inputs=("F",))
+    kw = dict(free=("J1", "c"), positive=("J1", "c"), noise=2e-4, rtol=1e-8)
+    for shooting in (2, 1):
+        problem, theta0, obs, _ = prepare(cli_model.MECH, cli_model.params(rec), rec, shooting=shooting, **kw)
+        n = jax.eval_shape(lambda: problem.raw_residuals(theta0, obs)).shape[0]
+        assert problem.n_residuals(obs) == n
+    host = solve_least_squares_host(problem, theta0, obs)
+    loop = solve_least_squares(problem, theta0, obs)
+    assert int(host["result"]) == int(loop["result"]) == 0 and int(host["steps"]) == int(loop["steps"])
+    np.testing.assert_allclose(np.asarray(host["theta"]), np.asarray(loop["theta"]), rtol=1e-9, atol=1e-12)
 
 
 def test_host_svd_of_a_non_finite_matrix_is_nan_like_the_compiled_one():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh._linearize import linearize
+from jaxnh._analysis.linearize import linearize
 
 
 G, L = 9.81, 0.7
@@ -131,18 +131,16 @@ def test_knife_edge_in_motion_and_parts_compiled_once(caplog):
     mass diag(m sec²φ, J), and the rates (w, g sin α cos²φ − u w tan φ, 0): a motion, not an
     equilibrium, in which the derivatives of B and β all count.
 
-    A concrete linearisation is compiled in parts (the kinematics, the dynamics, the checks), all
-    at once before the first call (`jaxnh._export.compile_ahead`). Each part is compiled exactly
-    once, the dynamics too: it was compiled for stand-ins of the kinematics' outputs (which, from
-    an exported program such as this model's, are committed to a device) and runs twice, as the
-    operating accelerations are not given. A later call compiles nothing."""
+    A concrete linearisation is compiled in parts (the kinematics, the dynamics, the checks). Each
+    part is compiled exactly once, the dynamics too, although it runs twice (the operating
+    accelerations are not given). A later call compiles nothing."""
     import logging
 
     from jaxnh.models import knife_edge
 
     mech, p = knife_edge.mechanism(), knife_edge.default_params()
     m, J, g, al = 1.0, 0.2, 9.81, 0.3
-    names = ("jit(call)", "jit(_kinematics_traced)", "jit(_dynamics_traced)", "jit(_checks_traced)")
+    names = ("jit(_kinematics_traced)", "jit(_dynamics_traced)", "jit(_checks_traced)")
 
     def compilations():
         messages = [r.getMessage() for r in caplog.records if "Finished XLA compilation" in r.getMessage()]

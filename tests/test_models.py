@@ -19,7 +19,7 @@ import scipy.optimize
 import scipy.special
 
 import jaxnh as nh
-from jaxnh._holonomic import HolonomicMechanism
+from jaxnh._solve.holonomic import HolonomicMechanism
 from jaxnh.models import disc as D, knife_edge as K, sleigh as S
 
 

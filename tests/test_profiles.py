@@ -158,7 +158,7 @@ def test_jit_vmap_grad_through_a_spline():
 def test_smooth_step_and_declared_breakpoints():
     """SmoothStep against its closed form; breakpoints declared by kinked and steep profiles,
     through wrappers and nested params; none from smooth ones."""
-    from jaxnh.profiles import declared_breakpoints, SmoothStep
+    from jaxnh._model.profiles import declared_breakpoints, SmoothStep
 
     s = SmoothStep(1.0, 3.0, 2.0, 0.1)
     for t in (0.0, 1.9, 2.0, 2.05, 5.0):

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnh._linearize import lagrange_expression
-from jaxnh._mechanism import Mechanism
+from jaxnh._analysis.linearize import lagrange_expression
+from jaxnh._model.mechanism import Mechanism
 from jaxnh.models import disc as D
 from jaxnh.rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, skew, vee, Wheel
 

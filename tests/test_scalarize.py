@@ -1,4 +1,4 @@
-"""Small vector fields flattened to scalar operations (jaxnh._scalarize).
+"""Small vector fields flattened to scalar operations (jaxnh._equations.scalarize).
 
 The flattened function must be the same function: the same values up to the
 rounding of re-associated sums (written-out reductions and small matrix
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import jaxnh._scalarize as S
-from jaxnh._scalarize import scalarized
+import jaxnh._equations.scalarize as S
+from jaxnh._equations.scalarize import scalarized
 from jaxnh.equations import formulation
 from jaxnh.models import disc, knife_edge, sleigh, variator
 

@@ -15,7 +15,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from jaxnh.solvers import DOP853  # noqa: E402
+from jaxnh._solve.rk import DOP853  # noqa: E402
 
 
 ORDER = 8  # global order of DOP853
@@ -71,7 +71,7 @@ LV_Y0 = jnp.array([1.0, 1.0])
 def test_tableau_matches_scipy_and_is_consistent():
     from scipy.integrate._ivp import dop853_coefficients as ref
 
-    from jaxnh import solvers as S
+    from jaxnh._solve import rk as S
 
     A = np.zeros((16, 16))
     for i, row in S._A.items():

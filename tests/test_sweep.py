@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
-from jaxnh._sweep import default_mesh, sweep
+from jaxnh._analysis.sweep import default_mesh, sweep
 from jaxnh.models import variator as V
 from jaxnh.profiles import Fourier
 
@@ -142,7 +142,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_sweep import batch, run
     import jaxnh
-    from jaxnh._sweep import sweep
+    from jaxnh._analysis.sweep import sweep
     assert jax.device_count() == 2, jax.devices()
     J2, amp, w0, ps = batch(7)
     out = sweep(run, ps, w0, chunk_size=4)
@@ -211,7 +211,7 @@ MULTI_PROCESS_SCRIPT = textwrap.dedent(
     jax.distributed.initialize(coordinator_address=f"localhost:{port}", num_processes=2, process_id=pid)
     import numpy as np
     import jax.numpy as jnp
-    from jaxnh._sweep import sweep
+    from jaxnh._analysis.sweep import sweep
     assert jax.process_count() == 2 and jax.device_count() == 4, (jax.process_count(), jax.devices())
     x = np.arange(11.0)
     res = sweep(lambda v, w: {"a": v * w, "b": jnp.sin(v)}, x, jnp.asarray(3.0), in_axes=(0, None), chunk_size=4)

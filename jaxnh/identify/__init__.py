@@ -7,21 +7,23 @@
   estimates with standard errors (Gauss–Newton covariance scaled by the
   residual variance), bands of derived quantities (`result.band`,
   `result.profile_band("U21", ts)`), residual statistics, convergence, and
-  an identifiability report that names undetermined combinations.
+  an identifiability report that names undetermined combinations. It is an
+  `Estimates` (names, values, standard errors, covariance, bands), as is a
+  `Prediction`.
 * `Record`, `read_csv`, `load_default`, `noise_level` — measured data.
 * `prepare`, `Problem`, `solve_least_squares`, `statistics` — the pure-JAX
   core, for batched fits under `jax.vmap`.
-* `variator` — the friction variator: `fit_variator(record)`, `report(result)`.
 * Before measuring: `experiment(...)` → `Experiment`, `predict(exp)` →
   `Prediction` (Fisher information, predicted standard errors, the
   identifiability diagnosis), `optimal_design(...)` → `DesignResult`
   (inputs minimising a D-, A- or named-variance criterion within `Limits`:
-  contact force, energy, power); `variator_experiment()` is the embedded
-  record's set-up; `encoder_noise`, `ChannelNoise` the noise model.
+  contact force, energy, power); `encoder_noise`, `ChannelNoise` the noise model.
+
+The friction variator's own identification (`fit_variator`, `report`,
+`variator_experiment`) is in `jaxnh.models.variator_fit`.
 """
 
-from . import variator
-from ._experiment import (
+from jaxnh.identify._experiment import (
     ChannelNoise,
     DesignResult,
     encoder_noise,
@@ -31,12 +33,12 @@ from ._experiment import (
     optimal_design,
     predict,
     Prediction,
-    variator_experiment,
 )
-from ._fit import fit, FitResult, prepare
-from .data import load_default, MIN_SAMPLES, noise_level, read_csv, Record, write_csv
-from .diagnostics import Identifiability
-from .problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
+from jaxnh.identify._fit import fit, FitResult, prepare
+from jaxnh.identify.data import load_default, MIN_SAMPLES, noise_level, read_csv, Record, write_csv
+from jaxnh.identify.diagnostics import Identifiability
+from jaxnh.identify.estimates import Estimates
+from jaxnh.identify.problem import Observations, Problem, solve_least_squares, statistics, value_and_jacobian
 
 
 __all__ = [
@@ -50,12 +52,12 @@ __all__ = [
     "noise_level",
     "MIN_SAMPLES",
     "Identifiability",
+    "Estimates",
     "Observations",
     "Problem",
     "solve_least_squares",
     "statistics",
     "value_and_jacobian",
-    "variator",
     "experiment",
     "Experiment",
     "predict",
@@ -65,5 +67,4 @@ __all__ = [
     "Limits",
     "ChannelNoise",
     "encoder_noise",
-    "variator_experiment",
 ]

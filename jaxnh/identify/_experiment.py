@@ -44,15 +44,17 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._mechanism import Mechanism
-from .._sensitivity import ForwardSensitivity
-from .._simulate import simulate, STATUS
-from ..profiles import trainable
-from ._fit import _ProfileAt, estimate_band, prepare
-from .data import Record
-from .diagnostics import analyse, Identifiability
-from .parameters import resolve
-from .problem import Problem, statistics_host
+from jaxnh._base.compat import status_code
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.profiles import trainable
+from jaxnh._solve.sensitivity import ForwardSensitivity
+from jaxnh._solve.simulate import simulate, STATUS
+from jaxnh.identify._fit import prepare
+from jaxnh.identify.data import Record
+from jaxnh.identify.design import multistart
+from jaxnh.identify.estimates import estimate_fields, Estimates
+from jaxnh.identify.parameters import resolve
+from jaxnh.identify.problem import Problem, statistics_host
 
 
 __all__ = [
@@ -69,8 +71,6 @@ __all__ = [
     "evaluate_design",
     "input_spec",
     "CRITERIA",
-    "embedded_truth",
-    "variator_experiment",
 ]
 
 CRITERIA = ("D", "A")
@@ -321,8 +321,9 @@ def experiment(
 
 
 @dataclasses.dataclass
-class Prediction:
-    """What a fit of this experiment would report, predicted before the data.
+class Prediction(Estimates):
+    """What a fit of this experiment would report, predicted before the data: `Estimates`
+    at the nominal values, with predicted standard errors.
 
     Attributes:
         labels: label of every unknown (free parameters, then the initial state).
@@ -339,46 +340,18 @@ class Prediction:
         max_multiplier: max |λ| over the samples of the nominal motion
             (constraint forces in their units, e.g. N·m), per constraint.
         status: the nominal solve's status (0 = success).
+        estimates: {name: {"value", "std"}} as for `FitResult.estimates`.
     """
 
-    labels: tuple
-    values: np.ndarray
-    std: np.ndarray
     relative_std: np.ndarray
-    covariance: np.ndarray
     fisher: np.ndarray
-    identifiability: Identifiability
     max_multiplier: Optional[np.ndarray]
     status: int
-    estimates: dict
-    problem: Problem = dataclasses.field(repr=False)
-    theta: np.ndarray = dataclasses.field(repr=False)
-    cov_theta: np.ndarray = dataclasses.field(repr=False)
-    null_directions: np.ndarray = dataclasses.field(repr=False)
-
-    @property
-    def identifiable(self) -> bool:
-        """Whether the experiment determines every free parameter."""
-        return self.identifiability.identifiable
-
-    def band(self, fn, ts):
-        """Predicted value and standard error of `fn(params, t)` at times ts (see `FitResult.band`)."""
-        return estimate_band(self.problem, self.theta, self.cov_theta, self.null_directions, fn, ts)
-
-    def profile_band(self, name: str, ts):
-        """Predicted value and standard error of the free profile `name` (e.g. "U21") at times ts."""
-        return self.band(_ProfileAt(name), ts)
 
     def summary(self) -> str:
-        """A table of nominal values and predicted standard errors, and the diagnosis."""
-        lines = [f"{'parameter':<16}{'nominal':>14}{'pred. std':>12}{'rel.':>9}"]
-        for lab, v, s in zip(self.labels, self.values, self.std):
-            rel = f"{s / abs(v):8.3%}" if v != 0 and np.isfinite(s) else "     n/a"
-            lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
-        lines += self.identifiability.messages or [
-            f"all parameters identifiable (condition number {self.identifiability.condition:.3g})"
-        ]
-        return "\n".join(lines)
+        """A table of nominal values and predicted standard errors (95 % intervals), and the diagnosis."""
+        lines = self.table_lines(heads=("nominal", "± pred. std"))
+        return "\n".join(lines + self.identifiability_lines())
 
     def to_dict(self) -> dict:
         """JSON-ready: {label: {"value", "std", "relative_std"}} plus "identifiable" and "messages"."""
@@ -401,7 +374,7 @@ class Prediction:
 @eqx.filter_jit
 def _jacobian(exp: Experiment, params):
     J, sol = exp.jacobian(params)
-    return J, sol.multipliers, sol.status._value
+    return J, sol.multipliers, status_code(sol.status)
 
 
 def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Prediction:
@@ -419,47 +392,19 @@ def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Predicti
         exp = exp.with_params(params)
     J, lam, status = _jacobian(exp, None)
     J = np.asarray(J)
-    N, p = J.shape
+    N = J.shape[0]
     # statistics() scales the covariance by s² = |r|²/(N − rank); a residual of length √(N − rank) makes s² = 1
     st0 = statistics_host(J, np.zeros(N), rank_tol=rank_tol)
     dof = max(N - int(st0["rank"]), 1)
     r = np.zeros(N)
     r[0] = math.sqrt(dof)
     stats = statistics_host(J, r, rank_tol=rank_tol)
-    par = exp.problem.par
-    log = np.concatenate([par.log_mask(), np.zeros(p - par.size, bool)])
-    theta = np.asarray(exp.theta())
-    values = np.where(log, np.exp(theta), theta)
-    D = np.where(log, values, 1.0)
-    std = np.where(np.isfinite(stats["std"]), stats["std"] * D, np.inf)
-    ident = analyse(stats, exp.labels, log, rank_tol)
-    null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
+    fields = estimate_fields(exp.problem, exp.labels, exp.theta(), stats, rank_tol)
+    values, std = fields["values"], fields["std"]
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(values != 0, std / np.abs(values), np.nan)
-    estimates = {}
-    for name, sl in par.slices().items():
-        scalar = par.shapes[par.names.index(name)] == ((),)
-        v, s = values[sl], std[sl]
-        estimates[name] = {"value": float(v[0]) if scalar else v, "std": float(s[0]) if scalar else s}
-    for j in range(par.size, p):
-        estimates[exp.labels[j]] = {"value": float(values[j]), "std": float(std[j])}
     lam = None if lam is None else np.max(np.abs(np.asarray(lam)), axis=0)
-    return Prediction(
-        labels=exp.labels,
-        values=values,
-        std=std,
-        relative_std=rel,
-        covariance=stats["cov"] * np.outer(D, D),
-        fisher=J.T @ J,
-        identifiability=ident,
-        max_multiplier=lam,
-        status=int(status),
-        estimates=estimates,
-        problem=exp.problem,
-        theta=theta,
-        cov_theta=stats["cov"],
-        null_directions=null,
-    )
+    return Prediction(**fields, relative_std=rel, fisher=J.T @ J, max_multiplier=lam, status=int(status))
 
 
 # --- design criterion and constraints -----------------------------------------------------------------
@@ -636,7 +581,7 @@ class DesignResult:
 @eqx.filter_jit
 def _evaluate(loss: _Loss, params):
     value, pen, cov, sol = loss.terms(params)
-    out = {"value": value, "status": sol.status._value}
+    out = {"value": value, "status": status_code(sol.status)}
     lim = loss.limits
     if lim.multiplier is not None and sol.multipliers is not None:
         out["multiplier"] = jnp.max(jnp.abs(sol.multipliers)) / lim.multiplier
@@ -708,8 +653,6 @@ def optimal_design(
     Returns:
         A `DesignResult`.
     """
-    from ..design import multistart
-
     loss = design_loss(exp, criterion, of=of, limits=limits, penalty=penalty)
     spec = input_spec(params, inputs)
     theta, rest = eqx.partition(params, spec)
@@ -750,60 +693,3 @@ def optimal_design(
         for r in runs
     ]
     return DesignResult(best, ev["value"], run["accepted"], viol, starts_out, k_best)
-
-
-# --- the variator's embedded set-up -----------------------------------------------------------------
-
-
-def embedded_truth() -> dict:
-    """The values the embedded record was made with (`jaxnh/data/variator_truth.json`):
-    J1, J2 (kg·m²), U21 knots and values, phi0 (rad), w0 (rad/s), duration (s),
-    rate (Hz), counts_per_rev, jitter_std (rad)."""
-    import json
-    from importlib import resources
-
-    return json.loads(resources.files("jaxnh").joinpath("data", "variator_truth.json").read_text())
-
-
-def variator_experiment(
-    record: Optional[Record] = None,
-    *,
-    J1=None,
-    J2=None,
-    U21=None,
-    w0=None,
-    counts_per_rev=None,
-    jitter_std=None,
-    rtol: float = 1e-8,
-):
-    """The friction variator's identification experiment as `jaxnh fit` sets it up.
-
-    Defaults are the embedded record's: its sample times (6 s at 250 Hz) and
-    torques (as `Sampled` inputs), the true J1, J2 and U21 spline (7 knots) as
-    nominal values, phi(0) = 0, phi1'(0) = w0 = 4 rad/s, and its two
-    encoders (8192 and 4096 counts/rev with 0.3 and 0.6 mrad jitter). The
-    unknowns are J1, J2 and the U21 knot values (positive: logarithms) and the
-    initial state phi1(0), phi2(0), phi1'(0).
-
-    Returns:
-        `(exp, params)`: the `Experiment` and the nominal params (with the
-        record's torques) it was made with.
-    """
-    from ..models import variator as V
-    from ..profiles import CubicSpline
-    from .data import load_default
-    from .variator import FREE, params_for
-
-    T = embedded_truth()
-    record = load_default() if record is None else record
-    U21 = CubicSpline(T["U21_knots"], T["U21_values"]) if U21 is None else U21
-    params = params_for(record, T["J1"] if J1 is None else J1, T["J2"] if J2 is None else J2, U21)
-    counts = T["counts_per_rev"] if counts_per_rev is None else counts_per_rev
-    jitter = T["jitter_std"] if jitter_std is None else jitter_std
-    noise = {c: encoder_noise(n, j) for c, n, j in zip(("phi1", "phi2"), counts, jitter)}
-    w0 = T["w0"] if w0 is None else w0
-    qd0 = [w0, float(U21(record.t[0])) * w0]
-    exp = experiment(
-        V.mechanism(), params, record.t, free=FREE, positive=FREE, noise=noise, q0=T["phi0"], qd0=qd0, rtol=rtol
-    )
-    return exp, params

@@ -20,15 +20,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import one_shot_jit
-from .._mechanism import Mechanism
-from .._sensitivity import FORWARD_MAX_PARAMETERS
-from ..equations.split import choose_independent
-from ..linalg import value_and_jacfwd
-from .data import noise_level, Record
-from .diagnostics import analyse, Identifiability, lack_of_fit, LackOfFit
-from .parameters import Parametrisation, resolve
-from .problem import (
+from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.dataframe import fit_result_to_dict
+from jaxnh._base.linalg import value_and_jacfwd
+from jaxnh._equations.split import choose_independent
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.profiles import Sampled
+from jaxnh._solve.sensitivity import FORWARD_MAX_PARAMETERS
+from jaxnh._solve.simulate import default_solver, DOP853_BELOW_RTOL
+from jaxnh.identify.data import noise_level, Record
+from jaxnh.identify.diagnostics import lack_of_fit, LackOfFit
+from jaxnh.identify.estimates import estimate_fields, Estimates
+from jaxnh.identify.parameters import Parametrisation
+from jaxnh.identify.problem import (
     _Progress,
     FAILED_RESIDUAL,
     lm_message,
@@ -66,8 +70,8 @@ RATE_WINDOW = 15  # samples used to estimate a starting velocity from the data
 
 
 @dataclasses.dataclass
-class FitResult:
-    """The outcome of `fit`.
+class FitResult(Estimates):
+    """The outcome of `fit`: the `Estimates` of the free parameters and the initial state, and how the fit went.
 
     Attributes:
         params: the fitted params pytree (same structure as the starting one).
@@ -105,11 +109,6 @@ class FitResult:
     params: Any
     q0: np.ndarray
     qd0: np.ndarray
-    estimates: dict
-    labels: tuple
-    values: np.ndarray
-    std: np.ndarray
-    covariance: np.ndarray
     converged: bool
     iterations: int
     message: str
@@ -118,7 +117,6 @@ class FitResult:
     noise: dict
     chi2_dof: float
     lack_of_fit: LackOfFit
-    identifiability: Identifiability
     t: np.ndarray
     observe: tuple
     measured: np.ndarray
@@ -129,32 +127,6 @@ class FitResult:
     differentiation: str
     shooting: int
     elapsed: float
-    problem: Problem = dataclasses.field(repr=False)
-    theta: np.ndarray = dataclasses.field(repr=False)
-    cov_theta: np.ndarray = dataclasses.field(repr=False)
-    null_directions: np.ndarray = dataclasses.field(repr=False)
-
-    @property
-    def identifiable(self) -> bool:
-        """Whether the data determine every free parameter."""
-        return self.identifiability.identifiable
-
-    def band(self, fn, ts):
-        """Value and standard error of a derived quantity `fn(params, t)` at times ts.
-
-        The standard error is the linearised (delta-method) propagation of
-        the covariance; it is inf where `fn` depends on a combination the
-        data do not determine. Example: `result.band(lambda p, t: p.U21(t), ts)`
-        (pass the same function object again to reuse its compilation).
-
-        Returns:
-            `(value, std)`, NumPy arrays like ts.
-        """
-        return estimate_band(self.problem, self.theta, self.cov_theta, self.null_directions, fn, ts)
-
-    def profile_band(self, name: str, ts):
-        """Value and standard error of the free profile `name` (e.g. "U21") at times ts."""
-        return self.band(_ProfileAt(name), ts)
 
     def to_dict(self, arrays: bool = False) -> dict:
         """The result as plain Python data, ready for `json.dump` (any mechanism).
@@ -168,10 +140,8 @@ class FitResult:
         "q0", "qd0", residual statistics, "lack_of_fit", "identifiability",
         "converged", "iterations", "message", and how it was done. With
         `arrays=True` also "t", "measured", "fitted", "residuals".
-        See `jaxnh._dataframe.fit_result_to_dict`.
+        See `jaxnh._base.dataframe.fit_result_to_dict`.
         """
-        from .._dataframe import fit_result_to_dict
-
         return fit_result_to_dict(self, arrays=arrays)
 
     def __repr__(self) -> str:
@@ -187,59 +157,34 @@ class FitResult:
     def __str__(self) -> str:
         return self.summary()
 
-    def summary(self) -> str:
-        """A table of estimates ± standard errors and the residual statistics."""
-        lines = [f"{'parameter':<16}{'estimate':>14}{'std error':>12}{'rel.':>9}"]
-        for lab, v, s in zip(self.labels, self.values, self.std):
-            rel = f"{s / abs(v):8.2%}" if v != 0 and np.isfinite(s) else "     n/a"
-            lines.append(f"{lab:<16}{v:>14.6g}{s:>12.3g} {rel}")
+    def summary(self, truth: Optional[dict] = None, *, units: Optional[dict] = None, residual_unit=(1.0, "")) -> str:
+        """A table of estimates ± standard errors with 95 % intervals, then the residual
+        statistics, convergence, the lack-of-fit test and the identifiability report.
+
+        Arguments:
+            truth: true values, when known, to show next to the estimates
+                ({name: value}; {"<name>_values": array} for a profile).
+            units: {parameter name: unit text} shown after the names, e.g. {"J1": " kg·m²"}.
+            residual_unit: (factor, unit text): residuals and noise levels are
+                shown multiplied by factor, followed by the unit, e.g.
+                (1e3, " mrad") for channels in rad.
+        """
+        scale, unit = residual_unit
+        lines = self.table_lines(truth, units=units)
         lines.append(
-            f"rms residual {self.rms_residual:.4g} ("
-            + ", ".join(f"{k} {v:.3g}" for k, v in self.rms_by_channel.items())
-            + "); noise used "
-            + ", ".join(f"{k} {v:.3g}" for k, v in self.noise.items())
-            + f"; s² = {self.chi2_dof:.3f}"
+            f"  rms residual {scale * self.rms_residual:.4g}{unit} ("
+            + ", ".join(f"{c} {scale * v:.4g}" for c, v in self.rms_by_channel.items())
+            + "); noise σ "
+            + ", ".join(f"{c} {scale * v:.4g}" for c, v in self.noise.items())
+            + f"{unit}; s² = {self.chi2_dof:.3f}"
         )
+        lines.append("  " + self.lack_of_fit.message)
         lines.append(
-            f"{self.optimizer}: {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT converged'} — {self.message}"
+            f"  {self.optimizer}: {self.iterations} iterations, "
+            f"{'converged' if self.converged else 'NOT CONVERGED'}: {self.message}; {self.elapsed:.1f} s"
         )
-        lines.append(self.lack_of_fit.message)
-        lines += self.identifiability.messages
+        lines += self.identifiability_lines()
         return "\n".join(lines)
-
-
-def estimate_band(problem: Problem, theta, cov_theta, null_directions, fn, ts):
-    """`(value, std)` of `fn(params, t)` at times ts for the estimate θ with covariance `cov_theta`
-    (`FitResult.band`; a predicted `Prediction.band` too)."""
-    ts = jnp.asarray(ts, dtype=jnp.result_type(float))
-    P = problem.par.size
-    val, G = (np.asarray(x) for x in _band_jacobian(problem.par, jnp.asarray(theta[:P]), ts.reshape(-1), fn))
-    C = cov_theta[:P, :P]
-    std = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", G, C, G), 0.0))
-    if null_directions.size:
-        leak = np.abs(G @ null_directions[:, :P].T)
-        scale = np.maximum(np.abs(G).sum(axis=1), np.finfo(float).tiny)
-        std = np.where(np.any(leak > 1e-6 * scale[:, None], axis=1), np.inf, std)
-    return val.reshape(np.shape(ts)), std.reshape(np.shape(ts))
-
-
-class _ProfileAt(eqx.Module):
-    """`params ↦ profile name at t`, hashable by name (so its band compiles once)."""
-
-    name: str = eqx.field(static=True)
-
-    def __call__(self, params, t):
-        return resolve(params, self.name)(t)
-
-
-@one_shot_jit
-def _band_jacobian(par, theta, ts, fn):
-    def g(th):
-        p = par.unpack(th)
-        return jax.vmap(lambda t: fn(p, t))(ts)
-
-    return value_and_jacfwd(g, theta)
 
 
 def _as_list(x):
@@ -468,8 +413,6 @@ def fit_solver(solver, params, rtol: float):
     """
     if solver is not None:
         return solver
-    from .._simulate import DOP853_BELOW_RTOL
-    from ..profiles import Sampled
 
     sampled = any(
         isinstance(x, Sampled) for x in jax.tree_util.tree_leaves(params, is_leaf=lambda x: isinstance(x, Sampled))
@@ -478,7 +421,6 @@ def fit_solver(solver, params, rtol: float):
         return diffrax.Tsit5()
     # an explicit solver keeps fits on diffrax's loop (the lean loop steps onto every report
     # time; the fits' measured convergence and calibration were established on diffrax's steps)
-    from .._simulate import default_solver
 
     return default_solver(rtol, None, "appell")
 
@@ -613,16 +555,12 @@ def fit(
         problem, theta0, obs, names = prepare(mech, params, data, shooting=shooting, **kw)
         if progress:
             print(f"multiple shooting: {shooting} segments, {problem.size} unknowns")
-        out = solve_least_squares_host(
-            problem,
-            theta0,
-            obs,
-            tol=max(tol, 1e-6),
-            max_steps=max_iterations,
-            progress=_progress(problem, names, obs) if progress else None,
+        # always Levenberg–Marquardt, to a looser tolerance: single shooting polishes the answer
+        theta_ms, _, _, its, _, _ = _optimise(
+            problem, OPTIMIZERS[0], theta0, obs, names, max(tol, 1e-6), max_iterations, progress
         )
-        iterations += int(out["steps"])
-        theta_ms = np.asarray(out["theta"])[: problem.n_params + problem.n_initial]
+        iterations += its
+        theta_ms = np.asarray(theta_ms)[: problem.n_params + problem.n_initial]
     problem, theta0, obs, names = prepare(mech, params, data, **kw)
     if differentiation == "auto":
         differentiation = "forward" if lm or problem.size <= FORWARD_MAX_UNKNOWNS else "reverse"
@@ -634,26 +572,8 @@ def fit(
             f"{'Levenberg–Marquardt' if lm else 'optax'} on {problem.size} unknowns, {obs.y.size} residuals "
             f"({', '.join(problem.labels(names)[:6])}{', …' if problem.size > 6 else ''})"
         )
-    if lm:
-        out = solve_least_squares_host(
-            problem,
-            theta0,
-            obs,
-            tol=tol,
-            max_steps=max_iterations,
-            progress=_progress(problem, names, obs) if progress else None,
-        )
-        theta, r, J = out["theta"], out["r"], out["J"]
-        iterations += int(out["steps"])
-        stopped, why = int(out["result"]) == 0, lm_message(int(out["result"]), max_iterations)
-        opt_name = "levenberg-marquardt"
-    else:
-        theta, r, J, its, stopped = _optax_loop(problem, optimizer, theta0, obs, tol, max_iterations, progress)
-        iterations += its
-        if J is None:
-            r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
-        why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
-        opt_name = "optax"
+    theta, r, J, its, stopped, why = _optimise(problem, optimizer, theta0, obs, names, tol, max_iterations, progress)
+    iterations += its
     # The ODE tolerance follows the precision the data demand: tighten it while the solver's own error is
     # not negligible against the standard errors, and continue the fit from where it stopped.
     first_err = None
@@ -670,48 +590,21 @@ def fit(
                 f"  the ODE solver's error is {err:.2g} standard errors (> {ODE_ERROR_STD}): "
                 f"continuing at rtol {problem.rtol:.2g}, atol {problem.atol:.2g}"
             )
-        if lm:
-            out = solve_least_squares_host(
-                problem,
-                jnp.asarray(theta),
-                obs,
-                tol=tol,
-                max_steps=max_iterations,
-                progress=_progress(problem, names, obs) if progress else None,
-            )
-            theta, r, J = out["theta"], out["r"], out["J"]
-            iterations += int(out["steps"])
-            stopped, why = int(out["result"]) == 0, lm_message(int(out["result"]), max_iterations)
-        else:
-            theta, r, J, its, stopped = _optax_loop(
-                problem, optimizer, jnp.asarray(theta), obs, tol, max_iterations, progress
-            )
-            iterations += its
-            if J is None:
-                r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
-            why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
+        theta, r, J, its, stopped, why = _optimise(problem, optimizer, theta, obs, names, tol, max_iterations, progress)
+        iterations += its
     if first_err is not None and problem.rtol < AUTO_RTOL_START:
         why += (
             f" (ODE rtol tightened to {problem.rtol:.2g}: at rtol {AUTO_RTOL_START:g} the solver's error "
             f"was {first_err:.2g} standard errors)"
         )
-    return _result(
-        problem,
-        names,
-        obs,
-        theta,
-        r,
-        J,
-        stopped,
-        why,
-        iterations,
-        rank_tol,
-        opt_name,
-        differentiation,
-        shooting,
-        time.perf_counter() - started,
-        noise_estimated=noise is None,
+    how = dict(
+        iterations=iterations,
+        optimizer=OPTIMIZERS[0] if lm else "optax",
+        differentiation=differentiation,
+        shooting=shooting,
+        elapsed=time.perf_counter() - started,
     )
+    return _result(problem, names, obs, theta, r, J, stopped, why, rank_tol, noise_estimated=noise is None, how=how)
 
 
 def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
@@ -738,6 +631,30 @@ def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
     U, sv, _ = thin_svd(Jd / np.where(c > 0, c, 1.0))
     U = U[:, sv > 1e-10 * sv[0]]
     return float(np.linalg.norm(U.T @ e))
+
+
+def _optimise(problem: Problem, optimizer, theta0, obs: Observations, names, tol, max_iterations, progress):
+    """One run of the optimiser from θ0: `(θ, r, J, iterations, stopped on its tolerances, why in words)`.
+
+    Levenberg–Marquardt (`optimizer` a name) is `solve_least_squares_host`; an
+    optax `GradientTransformation` runs `_optax_loop`, and the forward-mode
+    Jacobian at its answer is evaluated for the statistics when it has none."""
+    if isinstance(optimizer, str):
+        out = solve_least_squares_host(
+            problem,
+            theta0,
+            obs,
+            tol=tol,
+            max_steps=max_iterations,
+            progress=_progress(problem, names, obs) if progress else None,
+        )
+        code = int(out["result"])
+        return out["theta"], out["r"], out["J"], int(out["steps"]), code == 0, lm_message(code, max_iterations)
+    theta, r, J, its, stopped = _optax_loop(problem, optimizer, jnp.asarray(theta0), obs, tol, max_iterations, progress)
+    if J is None:
+        r, J = value_and_jacobian(dataclasses.replace(problem, differentiation="forward"), theta, obs)
+    why = "loss stopped changing" if stopped else f"iteration limit ({max_iterations}) reached"
+    return theta, r, J, its, stopped, why
 
 
 def _progress(problem, names, obs):
@@ -808,35 +725,12 @@ def _optax_loop(problem, optimizer, theta, obs, tol, max_iterations, progress, p
     return best[1], best[2], best[3], k, stopped
 
 
-def _result(
-    problem,
-    names,
-    obs,
-    theta,
-    r,
-    J,
-    stopped,
-    why,
-    iterations,
-    rank_tol,
-    optimizer,
-    differentiation,
-    shooting,
-    elapsed,
-    noise_estimated: bool = False,
-) -> FitResult:
+def _result(problem, names, obs, theta, r, J, stopped, why, rank_tol, *, noise_estimated: bool, how: dict) -> FitResult:
+    """The `FitResult` at θ from the weighted residuals r and their Jacobian J there; `how` holds the
+    fields that say how the fit was done (iterations, optimizer, differentiation, shooting, elapsed)."""
     stats = statistics_host(J, r, rank_tol=rank_tol)
-    par = problem.par
-    labels = problem.labels(names)
-    log = np.concatenate([par.log_mask(), np.zeros(problem.size - par.size, bool)])
-    theta = np.asarray(theta)
-    values = np.where(log, np.exp(theta), theta)
-    D = np.where(log, values, 1.0)
-    cov_theta = stats["cov"]
-    std = np.where(np.isfinite(stats["std"]), stats["std"] * D, np.inf)
-    covariance = cov_theta * np.outer(D, D)
-    ident = analyse(stats, labels, log, rank_tol)
-    null = stats["Vt"][~(stats["sv"] > rank_tol)] / np.where(stats["colnorm"] > 0, stats["colnorm"], 1.0)
+    fields = estimate_fields(problem, problem.labels(names), theta, stats, rank_tol)
+    theta = fields["theta"]
     params, q0, qd0 = _estimate_state(problem, jnp.asarray(theta), jnp.asarray(obs.t[0]))
     q0, qd0 = np.asarray(q0), np.asarray(qd0)
     n, k = obs.y.shape
@@ -856,48 +750,29 @@ def _result(
     )
     if failed:
         message += "; THE SIMULATION FAILED at the final parameters (see jaxnh.simulate's status)"
-    estimates = {}
-    for name, sl in par.slices().items():
-        v, s = values[sl], std[sl]
-        scalar = par.shapes[par.names.index(name)] == ((),)
-        estimates[name] = {"value": float(v[0]) if scalar else v, "std": float(s[0]) if scalar else s}
-    for j in range(par.size, problem.size):
-        estimates[labels[j]] = {"value": float(values[j]), "std": float(std[j])}
     lof = lack_of_fit(res, sigma, float(stats["s2"]), int(stats["dof"]), noise_estimated, observe, converged)
+    ident = fields["identifiability"]
     if not ident.identifiable:
         warnings.warn("jaxnh.fit: " + " ".join(ident.messages), stacklevel=3)
     if lof.significant and converged:
         warnings.warn("jaxnh.fit: " + lof.message, stacklevel=3)
     return FitResult(
+        **fields,
         params=params,
         q0=q0,
         qd0=qd0,
-        estimates=estimates,
-        labels=labels,
-        values=values,
-        std=std,
-        covariance=covariance,
         converged=converged,
-        iterations=iterations,
         message=message,
         rms_residual=float(np.sqrt(np.mean(res**2))),
         rms_by_channel={c: float(np.sqrt(np.mean(res[:, i] ** 2))) for i, c in enumerate(observe)},
         noise={c: float(s) for c, s in zip(observe, sigma)},
         chi2_dof=float(stats["s2"]),
         lack_of_fit=lof,
-        identifiability=ident,
         t=np.asarray(obs.t),
         observe=observe,
         measured=np.asarray(obs.y),
         fitted=fitted,
         residuals=res,
         gn_step=gn,
-        optimizer=optimizer,
-        differentiation=differentiation,
-        shooting=shooting,
-        elapsed=elapsed,
-        problem=problem,
-        theta=theta,
-        cov_theta=cov_theta,
-        null_directions=null,
+        **how,
     )

@@ -24,7 +24,8 @@ from importlib import resources
 
 import numpy as np
 
-from .._host import array_module
+from jaxnh._base.atomic import atomic_write
+from jaxnh._base.host import array_module
 
 
 __all__ = [
@@ -497,8 +498,6 @@ def write_csv(record: Record, path, comments=()) -> None:
     The file is written to a temporary name in the same folder and renamed
     into place, so an interrupted write never leaves a partial file.
     """
-    from .._atomic import atomic_write
-
     names = ["t"] + list(record.channels) + list(record.inputs)
     cols = [record.t] + list(record.channels.values()) + list(record.inputs.values())
     with atomic_write(path, "w", newline="") as f:

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._host import array_module
-from ..profiles import trainable
+from jaxnh._base.host import array_module
+from jaxnh._model.profiles import trainable
 
 
 __all__ = ["Parametrisation", "resolve"]

@@ -12,12 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from ._fit import FitResult
+from jaxnh.identify._fit import FitResult
+from jaxnh.identify.estimates import Z95
+from jaxnh.identify.parameters import resolve
 
 
 __all__ = ["plot_fit", "plot_ratio"]
-
-Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 
 
 def _pyplot():
@@ -130,7 +130,6 @@ def plot_ratio(result: FitResult, truth=None, n: int = 401, *, fig=None, name: s
     if fig is None:
         _pyplot()
     ts = np.linspace(result.t[0], result.t[-1], n)
-    from .parameters import resolve
 
     u, s = result.profile_band(name, ts)
     spline = resolve(result.params, name)

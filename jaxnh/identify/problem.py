@@ -12,7 +12,7 @@ Unknowns θ = [free parameters | initial state | segment states]:
 Residuals are `(q_sim − y) / sigma` for every observed channel and sample,
 plus, with multiple shooting, the continuity defects between segments.
 Their Jacobian comes from forward sensitivities integrated with the state
-(`jaxnh._sensitivity.ForwardSensitivity`: one solve of the state and one
+(`jaxnh._solve.sensitivity.ForwardSensitivity`: one solve of the state and one
 sensitivity column per unknown), in one `jax.jacfwd` pass: with tens of
 unknowns and thousands of residuals this costs about 1.3–2 plain solves
 (benchmarks/FIT_COST.md), far less than reverse mode (one adjoint pass per
@@ -34,12 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import exported_call, ONE_SHOT
-from .._mechanism import Mechanism
-from .._sensitivity import ForwardSensitivity
-from .._simulate import simulate
-from ..equations.split import VelocitySplit
-from .parameters import Parametrisation
+from jaxnh._base.compile import one_shot_jit
+from jaxnh._equations.split import VelocitySplit
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._solve.sensitivity import ForwardSensitivity
+from jaxnh._solve.simulate import simulate
+from jaxnh.identify.parameters import Parametrisation
 
 
 __all__ = [
@@ -88,7 +88,7 @@ class Problem(eqx.Module):
             its tolerance (`fit(rtol="auto")`) reuses its compiled programs.
             `rtol`, `atol` read them as floats; `with_tolerances` replaces them.
         differentiation: "forward" (Jacobian by `jax.jacfwd` with
-            `jaxnh._sensitivity.ForwardSensitivity`) or "reverse"
+            `jaxnh._solve.sensitivity.ForwardSensitivity`) or "reverse"
             (`RecursiveCheckpointAdjoint`; for gradients of a scalar loss
             with many unknowns).
     """
@@ -249,6 +249,15 @@ class Problem(eqx.Module):
         defects = self.defect_weight * jnp.concatenate([dq.reshape(-1), dv.reshape(-1)])
         return _finite(jnp.concatenate([r.reshape(-1), defects]))
 
+    def n_residuals(self, data: Observations) -> int:
+        """Length of the residual vector for `data` (from the shapes alone): every observed
+        channel at every sample of every segment, then the continuity defects between segments."""
+        n_samples, k = data.y.shape
+        S = len(self.starts)
+        if S == 1:
+            return n_samples * k
+        return S * self.length * k + (S - 1) * self.n_segment_state
+
     def residuals(self, theta, data: Observations):
         """Weighted residuals; forward-mode problems carry a one-pass Jacobian rule."""
         if self.differentiation == "forward":
@@ -283,16 +292,12 @@ def _jacfwd(problem, theta, data):
 def value_and_jacobian(problem: Problem, theta, data: Observations):
     """Residuals r (N,) and their Jacobian J (N, size) at θ, by forward mode.
 
-    Compiled once per problem structure. For problems built from jaxnh's own models
-    (the CLI's variator) the traced program is also kept on disk (`jaxnh._export`), so
-    a second process skips tracing it."""
-    out = exported_call(_jacfwd, (problem, theta, data), name="value_and_jacobian", compiler_options=ONE_SHOT)
-    return _value_and_jacobian(problem, theta, data) if out is None else out
+    Compiled once per problem structure, with XLA's cheapest settings when called with
+    concrete values (`jaxnh._base.compile.one_shot_jit`)."""
+    return _value_and_jacobian(problem, theta, data)
 
 
-@eqx.filter_jit
-def _value_and_jacobian(problem: Problem, theta, data: Observations):
-    return _jacfwd(problem, theta, data)
+_value_and_jacobian = one_shot_jit(_jacfwd)
 
 
 class _Progress(eqx.Module):
@@ -486,6 +491,8 @@ def solve_least_squares(
     progress: Optional[_Progress] = None,
     gn_tol: float = GN_STOP_TOL,
     step_rtol: float = 1e-10,
+    *,
+    host: bool = False,
 ):
     """Levenberg–Marquardt from θ0; pure JAX, so it vmaps over data and θ0.
 
@@ -507,42 +514,29 @@ def solve_least_squares(
     `tol`·(1 + |θ|). Else result 1 (`max_steps` evaluations), 2 (stalled) or
     3 (failed at θ0); `LM_RESULTS` says them in words.
 
-    `jaxnh.fit` runs the same iteration from Python around a compiled
-    `value_and_jacobian` (`solve_least_squares_host`), which compiles in about
-    half the time; this one is for batches (`jax.vmap`).
+    With `host=True` (`solve_least_squares_host`, what `jaxnh.fit` uses) the
+    same iteration runs from Python around a compiled `value_and_jacobian`,
+    which compiles in about half the time; the default compiles the whole
+    loop, for batches (`jax.vmap`). Both run `_levenberg_marquardt`.
 
     Returns a dict: `theta`, `result` (int, see above), `steps` (evaluations
     of r and J, the first at θ0 included), `r` and `J` at `theta`.
     """
-    theta0 = jnp.asarray(theta0)
-    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype)
-    return _levenberg_marquardt(problem, theta0, data, limits, progress)
+    xp = np if host else jnp
+    theta0 = xp.asarray(theta0)
+    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype, xp=xp)
+    if not host:
+        return _levenberg_marquardt_compiled(problem, theta0, data, limits, progress)
+
+    def evaluate(theta):  # the compiled (r, J), as NumPy arrays
+        r, J = value_and_jacobian(problem, jnp.asarray(theta), data)
+        return np.asarray(r), np.asarray(J)
+
+    return _levenberg_marquardt(evaluate, theta0, problem.n_residuals(data), limits, progress, np)
 
 
-@eqx.filter_jit
-def _levenberg_marquardt(problem: Problem, theta0, data: Observations, limits, progress):
-    def step(state: _LMState) -> _LMState:
-        r_c, J_c = _jacfwd(problem, state.trial, data)
-        if progress is not None:
-            progress(state.k, 0.5 * jnp.dot(r_c, r_c), state.loss, state.mu, state.trial)
-        return _lm_update(state, r_c, J_c, limits)
-
-    N = jax.eval_shape(lambda: problem.raw_residuals(theta0, data)).shape[0]
-    out = jax.lax.while_loop(lambda st: ~st.done, step, _lm_start(theta0, N))
-    return _lm_out(out)
-
-
-def solve_least_squares_host(
-    problem: Problem,
-    theta0,
-    data: Observations,
-    tol: float = 1e-8,
-    max_steps: int = 100,
-    progress: Optional[_Progress] = None,
-    gn_tol: float = GN_STOP_TOL,
-    step_rtol: float = 1e-10,
-):
-    """`solve_least_squares` for one record, iterated from Python.
+def solve_least_squares_host(problem: Problem, theta0, data: Observations, **options) -> dict:
+    """`solve_least_squares` for one record, iterated from Python (`host=True`; the same options).
 
     The same iteration and the same results; the loop runs on the host, so the
     only compiled program is `value_and_jacobian` (shared with every other
@@ -550,18 +544,37 @@ def solve_least_squares_host(
     to compile (benchmarks/FIT_COST.md); the iteration's own arithmetic runs
     in NumPy. Not for `jax.vmap`/`jax.jit`.
     """
-    theta0 = np.asarray(theta0)
-    limits = _lm_limits(tol, gn_tol, step_rtol, max_steps, theta0.dtype, xp=np)
-    r_c, J_c = (np.asarray(x) for x in value_and_jacobian(problem, jnp.asarray(theta0), data))
-    state = _lm_start(theta0, r_c.shape[0], xp=np)
-    while True:
-        if progress is not None:
-            progress.show(int(state.k), 0.5 * float(np.dot(r_c, r_c)), float(state.loss), float(state.mu), state.trial)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # as jax.numpy: inf/nan, no warning
-            state = _lm_update(state, r_c, J_c, limits, xp=np)
-        if bool(state.done):
-            return _lm_out(state)
-        r_c, J_c = (np.asarray(x) for x in value_and_jacobian(problem, jnp.asarray(state.trial), data))
+    return solve_least_squares(problem, theta0, data, host=True, **options)
+
+
+@eqx.filter_jit
+def _levenberg_marquardt_compiled(problem: Problem, theta0, data: Observations, limits, progress):
+    return _levenberg_marquardt(
+        lambda theta: _jacfwd(problem, theta, data), theta0, problem.n_residuals(data), limits, progress, jnp
+    )
+
+
+def _levenberg_marquardt(evaluate, theta0, n_residuals: int, limits, progress, xp) -> dict:
+    """The one Levenberg–Marquardt driver: evaluate (r, J) at the trial point, update, until done.
+
+    `xp` is `jax.numpy` for the compiled loop (`jax.lax.while_loop`, traced once) or `numpy`
+    for the host loop (a Python loop; `evaluate` returns NumPy arrays)."""
+    show = None if progress is None else (progress.show if xp is np else progress)
+
+    def step(state: _LMState) -> _LMState:
+        r_c, J_c = evaluate(state.trial)
+        if show is not None:
+            show(state.k, 0.5 * xp.dot(r_c, r_c), state.loss, state.mu, state.trial)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # NumPy as jax.numpy: inf/nan, no warning
+            return _lm_update(state, r_c, J_c, limits, xp=xp)
+
+    state = _lm_start(theta0, n_residuals, xp=xp)
+    if xp is np:
+        while not bool(state.done):
+            state = step(state)
+    else:
+        state = jax.lax.while_loop(lambda st: ~st.done, step, state)
+    return _lm_out(state)
 
 
 def lm_message(code: int, max_steps: int) -> str:

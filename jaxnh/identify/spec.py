@@ -7,7 +7,7 @@ returns a `FitSpec` (or a dict with the same keys):
     import jax.numpy as jnp
     import jaxnh as nh
     from jaxnh.identify.spec import FitSpec
-    from jaxnh.profiles import Sampled
+    from jaxnh._model.profiles import Sampled
 
     def cart():
         def T(q, qd, t, p):                    # J
@@ -52,6 +52,10 @@ import sys
 import traceback
 from typing import Any, Callable, Optional, Sequence, Union
 
+import equinox as eqx
+
+from jaxnh._model.mechanism import Mechanism
+
 
 __all__ = ["FitSpec", "load_model", "ModelError"]
 
@@ -84,8 +88,6 @@ class FitSpec:
 
 def _is_pytree_module(x) -> bool:
     try:
-        import equinox as eqx
-
         return isinstance(x, eqx.Module)
     except ImportError:  # pragma: no cover
         return False
@@ -170,8 +172,6 @@ def load_model(ref: str) -> FitSpec:
     """Import `module:function` (or `file.py:function`), call the function and
     check the `FitSpec` it returns. Raises `ModelError` (a ValueError) naming
     what is wrong."""
-    from .._mechanism import Mechanism
-
     if not isinstance(ref, str) or ":" not in ref:
         raise ModelError(f"--model {ref}: expected 'variator' or 'module:function' (or 'file.py:function')")
     module, _, func = ref.rpartition(":")

@@ -2,7 +2,7 @@
 (Chaplygin sleigh), `knife_edge` (on an incline), `disc` (rolling disc) and `bicycle`
 (the Whipple bicycle benchmark)."""
 
-from . import bicycle, disc, knife_edge, sleigh, variator
+from jaxnh.models import bicycle, disc, knife_edge, sleigh, variator
 
 
 __all__ = ["bicycle", "disc", "knife_edge", "sleigh", "variator"]

@@ -39,13 +39,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._export import ONE_SHOT as _ONE_SHOT, one_shot_jit
-from .._holonomic import HolonomicMechanism
-from .._host import array_module
-from .._linearize import Linearization, linearize
-from .._status import is_traced
-from ..linalg import mm
-from ..rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
+from jaxnh._analysis.linearize import Linearization, linearize
+from jaxnh._base.compile import ONE_SHOT as _ONE_SHOT, one_shot_jit
+from jaxnh._base.host import array_module
+from jaxnh._base.linalg import mm
+from jaxnh._base.status import is_traced
+from jaxnh._model.rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
+from jaxnh._solve.holonomic import HolonomicMechanism
 
 
 __all__ = [
@@ -429,7 +429,7 @@ def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matri
     Its complex pair crosses the imaginary axis where the Hurwitz
     determinant `a1 a2 a3 − a0 a3² − a4 a1²` of the characteristic
     polynomial `det(λ² M + λ v C1 + g K0 + v² K2)` vanishes; the root in
-    `bracket` is found by Brent's method to rounding. `matrices`: M, C1,
+    `bracket` is found by bisection to rounding. `matrices`: M, C1,
     K0, K2 if already computed (else `canonical_matrices(params, method)`).
     """
     mats, g = _matrices(params, method, matrices)
@@ -438,20 +438,30 @@ def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matri
         a4, a3, a2, a1, a0 = characteristic_polynomial(mats, v, g)
         return a1 * a2 * a3 - a0 * a3**2 - a4 * a1**2
 
-    lo, hi = bracket
-    # (SciPy has no type information: its return is inferred as that of full_output=False or True)
-    import scipy.optimize  # imported here: it costs 0.5 s at `import jaxnh` otherwise
-
-    return scipy.optimize.brentq(hurwitz, lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps)  # pyright: ignore[reportReturnType]
+    return _root(hurwitz, *bracket)
 
 
 def capsize_speed(params=None, bracket=(5.0, 10.0), method: str = "lagrange", matrices=None) -> float:
     """Speed (m/s) where the capsize mode becomes unstable: its real eigenvalue
     crosses zero, where `a0 = det(g K0 + v² K2)` vanishes (root in `bracket`)."""
     mats, g = _matrices(params, method, matrices)
-    lo, hi = bracket
-    import scipy.optimize
+    return _root(lambda v: characteristic_polynomial(mats, v, g)[4], *bracket)
 
-    return scipy.optimize.brentq(  # pyright: ignore[reportReturnType]  (as in weave_speed)
-        lambda v: characteristic_polynomial(mats, v, g)[4], lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps
-    )
+
+def _root(f, lo: float, hi: float) -> float:
+    """The root of f in [lo, hi] (a sign change) by bisection, to rounding of the speed (m/s)."""
+    f_lo, f_hi = f(lo), f(hi)
+    if not f_lo * f_hi <= 0:
+        raise ValueError(f"no sign change of the criterion between {lo} and {hi} m/s: choose another bracket")
+    while hi - lo > 4 * np.finfo(float).eps * max(abs(lo), abs(hi)):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        f_mid = f(mid)
+        if f_mid == 0:
+            return float(mid)
+        if (f_mid < 0) == (f_lo < 0):
+            lo, f_lo = mid, f_mid
+        else:
+            hi = mid
+    return float(0.5 * (lo + hi))

@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._linearize import linearize
-from .._mechanism import Mechanism
-from ..rigid import RigidBodies, rot_x, rot_y, rot_z, Wheel
+from jaxnh._analysis.linearize import linearize
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.rigid import RigidBodies, rot_x, rot_y, rot_z, Wheel
 
 
 __all__ = [

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._mechanism import Mechanism
+from jaxnh._model.mechanism import Mechanism
 
 
 __all__ = ["mechanism", "default_params", "closed_form", "kinetic", "potential", "constraint"]

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._mechanism import Mechanism
-from ..rigid import RigidBodies, rot_z
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.rigid import RigidBodies, rot_z
 
 
 __all__ = ["bodies", "mechanism", "default_params", "closed_form", "forward_speed", "initial_velocities"]

@@ -30,8 +30,8 @@ import numpy as np
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
-from .._mechanism import Mechanism
-from ..profiles import Constant, Fourier, Profile
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.profiles import Constant, Fourier, Profile
 
 
 __all__ = [

@@ -1,0 +1,367 @@
+"""Linearised equations of motion about an operating point, by `jax.jacfwd`.
+
+The state is `x = (q_C, v)`: a chosen subset q_C of the coordinates (leave
+out ignorable ones — a bicycle's position and heading, a wheel's rotation
+angle — whose values do not enter the dynamics) and the independent
+velocities v; the dependent velocities follow from the constraints,
+`q̇ = B(q, t) v + β0(q, t)`, and the other coordinates stay at their
+operating values. The equations of motion projected on the independent
+velocities,
+
+    E(q_C, v, v̇) = Bᵀ (M q̈ + h − Q) = 0,     q̈ = B v̇ + β,
+
+(Lagrange's equations with the multipliers eliminated, `Bᵀ Aᵀ = 0`, or
+Appell's `Bᵀ (∂S/∂q̈ − Q)`) are differentiated once by forward mode at the
+operating point into the second-order form
+
+    mass · δv̇ + damping · δv + stiffness · δq_C = 0,
+
+whose coefficients are those a textbook writes (for the Whipple bicycle:
+`M`, `v C1` and `g K0 + v² K2` of Meijaard et al. 2007), and the state
+matrix follows as
+
+    A = [[∂q̇_C/∂q_C, ∂q̇_C/∂v], −mass⁻¹ [stiffness, damping]].
+
+The operating point may be a steady motion rather than an equilibrium (a
+bicycle running straight: the wheels turn, the position advances) as long
+as the chosen state is steady there; `Linearization.rates` holds `ẋ` at the
+operating point to check that it is.
+
+The derivatives are taken in parts, joined by the chain rule: the
+configuration completed by `complete` and its derivatives in the kept
+coordinates; the kinematics (q̇ = B v + β0 and β = q̈ at v̇ = 0, with their
+Jacobians in (q, v), by one forward pass); and the dynamics (F = M q̈ + h − Q,
+or ∂S/∂q̈ − Q, with its Jacobians in q, q̇ and q̈, by one forward pass).
+Nested automatic differentiation makes large programs: for the Whipple
+bicycle (8 coordinates, 5 constraints) the kinematics are some 9k traced
+operations, the dynamics 7k, the checks of a concrete call 5k and the
+configuration 1.4k. A concrete call compiles each part as a program of its own with
+XLA's cheapest settings (`jaxnh._base.compile.ONE_SHOT`). They are compiled
+once per structure and later calls reuse them (about 5 ms for the bicycle);
+under a caller's `jit` the parts are traced into its program, and `jax.vmap`
+over speeds or parameters works as usual.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.linalg import solve_spd, value_and_jacfwd
+from jaxnh._base.status import is_traced
+from jaxnh._equations.base import as_data, as_float, as_time
+from jaxnh._equations.split import (
+    best_partition,
+    choose_independent,
+    partition_quality,
+    pick,
+    resolve_independent,
+    VelocitySplit,
+)
+from jaxnh._model.checks import constraints_affine
+from jaxnh._model.mechanism import _state_terms, Mechanism
+
+
+__all__ = ["Linearization", "linearize"]
+
+LINEAR_METHODS = ("lagrange", "appell")
+
+
+class Linearization(eqx.Module):
+    """The linearised motion about an operating point.
+
+    Attributes:
+        A: state matrix (n, n) for the state `x = (q_C, v)`; its rows for
+            q_C are in units of 1/s (or rates of the coordinates), those for
+            v in units of accelerations.
+        mass: `∂E/∂v̇` (k, k), the mass matrix for the independent velocities.
+        damping: `∂E/∂v` (k, k), gyroscopic and non-conservative velocity terms.
+        stiffness: `∂E/∂q_C` (k, n_C).
+        rates: the state's rates of change ẋ at the operating point (n,):
+            zero when it is an equilibrium or a steady motion.
+        state: the operating state x0 (n,).
+        states: state names, coordinates then `"d<name>"` for velocities.
+        coordinates: indices of q_C; speeds: indices of the independent velocities.
+    """
+
+    A: Float[Array, "n n"]
+    mass: Float[Array, "k k"]
+    damping: Float[Array, "k k"]
+    stiffness: Float[Array, "k c"]
+    rates: Float[Array, " n"]
+    state: Float[Array, " n"]
+    states: tuple = eqx.field(static=True)
+    coordinates: tuple = eqx.field(static=True)
+    speeds: Optional[tuple] = eqx.field(static=True)
+
+    def eigenvalues(self):
+        """Eigenvalues of A (complex, unsorted), 1/s."""
+        return jnp.linalg.eigvals(self.A)
+
+
+def _indices(name, idx, s):
+    out = tuple(int(i) for i in idx)
+    if len(set(out)) != len(out) or not all(0 <= i < s for i in out):
+        raise ValueError(f"linearize: `{name}` must be distinct indices in 0..{s - 1}; got {tuple(idx)!r}")
+    return out
+
+
+def linearize(
+    mech: Mechanism,
+    params,
+    q,
+    qd,
+    t=0.0,
+    *,
+    coordinates=None,
+    speeds=None,
+    method: str = "lagrange",
+    complete: Optional[Callable] = None,
+    accelerations=None,
+) -> Linearization:
+    """Linearise the motion of `mech` about the state (q, qd) at time t.
+
+    Arguments:
+        mech: the `Mechanism`.
+        params: its parameters (a pytree; differentiable, batchable).
+        q: operating coordinates (s,).
+        qd: operating velocities (s,); only the independent ones (`speeds`)
+            are used, the dependent ones follow from the constraints.
+        t: time, s.
+        coordinates: indices of the coordinates kept in the state (default
+            all); leave out ignorable ones.
+        speeds: indices of the independent velocities (default
+            `mech.independent`, else chosen from the constraint matrix at
+            (q, qd); under `jit`/`vmap` with traced values the choice is made
+            inside the program and `speeds` of the result is None).
+        method: which equations are linearised: "lagrange" — Lagrange's
+            expression from T, `E = Bᵀ (d/dt ∂T/∂q̇ − ∂T/∂q − Q)` (the
+            multipliers drop out, as `Bᵀ Aᵀ = 0`); "appell" — Appell's,
+            `E = Bᵀ (∂S/∂q̈ − Q)` with the mechanism's acceleration energy S
+            (the same as "lagrange" when it has none).
+        complete: optional `complete(q, t, params) -> q` applied to every
+            perturbed configuration, e.g. `HolonomicMechanism.restore` to
+            keep holonomic constraints satisfied.
+        accelerations: the independent accelerations v̇ (k,) at the
+            operating point, if known (zero for an equilibrium or a steady
+            motion); saves one of two passes. `rates` reports the actual
+            ones, so a wrong value shows there.
+
+    Returns:
+        A `Linearization`. Invalid input raises a ValueError naming it when
+        the values are concrete; under `jit`/`vmap`/`grad` constraints
+        declared linear that are not (and NaN input, a singular mass matrix)
+        give NaN matrices, never a finite wrong one.
+    """
+    if method not in LINEAR_METHODS:
+        raise ValueError(f"linearize: method must be one of {LINEAR_METHODS}; got {method!r}")
+    q = as_float(q)
+    qd = jnp.asarray(qd, dtype=q.dtype)
+    t = as_time(t, q)
+    params = as_data(params, q)
+    m = mech.check_shapes(q, qd, t, params)  # raises, naming the argument, for wrong shapes
+    mech.check_finite(q, qd, t, params)  # NaN/inf raise here, naming the argument
+    s = q.shape[0]
+    coordinates = tuple(range(s)) if coordinates is None else _indices("coordinates", coordinates, s)
+    speeds = resolve_independent(mech, None if speeds is None else _indices("speeds", speeds, s), s, m)
+    if speeds is None and not is_traced(q, qd, t, params):
+        speeds = choose_independent(mech, q, qd, t, params)
+    if accelerations is not None:
+        accelerations = jnp.asarray(accelerations, dtype=q.dtype)
+        if accelerations.shape != (s - m,):
+            raise ValueError(
+                f"linearize: `accelerations` must have shape ({s - m},) (one per independent speed); "
+                f"got {accelerations.shape}"
+            )
+    # concrete input: the program also returns the terms of `Mechanism.check_values` at (q, qd), which
+    # are judged on the host after it (a ValueError naming the problem), and leaves out its in-graph
+    # copy of the check for constraints declared linear that are not
+    checked = not is_traced(q, qd, t, params)
+    args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
+    # compiled once per structure with XLA's cheapest settings, in parts; traced into a caller's jit
+    out = _linearize_traced(*args)
+    A, mass, damping, stiffness, rates, x0, quality, terms = out
+    if checked:  # a mass matrix that is not positive definite, constraints declared linear that are not, ...
+        mech._judge_state_terms(terms, constraint_rtol=float("inf"))
+    if checked and speeds is not None and m and not float(quality) > 1e3 * float(jnp.finfo(q.dtype).eps):
+        raise ValueError(
+            f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
+            "at this state (the dependent block of ∂c/∂qd is singular); choose other speeds or pass "
+            "speeds=None for an automatic choice."
+        )
+    names = mech.coordinate_names(s)
+    dnames = tuple("d" + names[i] for i in speeds) if speeds is not None else tuple(f"dv{j}" for j in range(s - m))
+    states = tuple(names[i] for i in coordinates) + dnames
+    return Linearization(
+        A=A,
+        mass=mass,
+        damping=damping,
+        stiffness=stiffness,
+        rates=rates,
+        state=x0,
+        states=states,
+        coordinates=coordinates,
+        speeds=speeds,
+    )
+
+
+def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked=False):
+    """The linearisation from its compiled parts (the whole of it under a caller's `jit`, where the
+    parts are traced into one program). `checked`: the values are concrete and checked on the host
+    after the call, so the in-graph affinity test is left out, and the last two outputs are the
+    quality of the given `speeds`' dependent block at (q, qd) (1 otherwise), for `linearize` to
+    refuse a singular one, and `_state_terms` at (q, qd) for `Mechanism._judge_state_terms` (None
+    otherwise)."""
+    if checked:
+        quality, terms = _checks(mech, params, q, qd, t, speeds)
+    else:
+        quality, terms = jnp.ones((), q.dtype), None
+    if complete is not None:
+        q_op, dq_dc = _configuration(params, q, t, coordinates, complete)
+    else:
+        q_op, dq_dc = q, _alone(q.shape[0], coordinates, q.dtype)
+    # traced values cannot be checked on the host: the kinematics check in-graph that constraints
+    # declared linear are, and come out NaN (and so everything after them) if they are not
+    x0, K, dK = _kinematics(mech, params, q_op, dq_dc, qd, t, coordinates, speeds, not checked)
+    if accelerations is None:
+        vd = np.zeros(K[2].shape[1], q.dtype)
+    else:
+        vd = accelerations
+    A, mass, damping, stiffness, rates, vd_next = _dynamics(mech, params, K, dK, vd, t, method, coordinates)
+    if accelerations is None:
+        # E is affine in v̇: the first pass gives the operating accelerations, the second the
+        # matrices there (and `rates`, one more correction, to show that they are right)
+        A, mass, damping, stiffness, rates, _ = _dynamics(mech, params, K, dK, vd_next, t, method, coordinates)
+    return A, mass, damping, stiffness, rates, x0, quality, terms
+
+
+def _checks_traced(mech, params, q, qd, t, speeds):
+    """What `linearize` checks on the host at a concrete state: the quality of the given `speeds`'
+    dependent block at (q, qd) (1 when they are chosen automatically) and `_state_terms`."""
+    s = q.shape[0]
+    m = mech.n_constraints(q, qd, t, params)
+    terms = _state_terms(mech, q, qd, t, params)
+    quality = jnp.ones((), q.dtype)
+    if speeds is not None and m:
+        quality = partition_quality(mech, q, qd, t, params, speeds, s - m, A=terms[2])[0]
+    return quality, terms
+
+
+def _configuration_traced(params, q, t, coordinates, complete):
+    """The operating configuration completed by `complete(q, t, params)` (holonomic constraints
+    re-solved) and its derivatives ∂q/∂q_C (s, nc) in the kept coordinates, by forward mode."""
+    q = complete(q, t, params)
+
+    def configuration(xc):
+        qq = q
+        for j, i in enumerate(coordinates):
+            qq = qq.at[i].set(xc[j])
+        return complete(qq, t, params)
+
+    return value_and_jacfwd(configuration, pick(q, coordinates))
+
+
+def _alone(s, coordinates, dtype):
+    """∂q/∂q_C (s, nc) when the kept coordinates move alone (no holonomic completion): unit columns."""
+    return np.eye(s, dtype=dtype)[:, list(coordinates)]
+
+
+def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds, check_affine=False):
+    """The velocity map at the operating configuration q and its first derivatives in the state.
+
+    `dq_dc`: ∂q/∂q_C (s, nc), how the configuration moves with the kept coordinates. Returns the
+    state x0 = (q_C, v) (n,), K = (q, q̇, B, β) (β: q̈ at v̇ = 0) and their Jacobians dK/dx
+    (`(s, n)`, `(s, n)`, `(s, n, k)`, `(s, n)`): what the constraints contribute, by one
+    forward-mode pass over the s + k directions of (q, v), and the chain rule. `check_affine`:
+    all of them NaN when constraints declared linear in the velocities are not (values that
+    cannot be checked on the host: a finite, wrong linearisation otherwise)."""
+    s = q.shape[0]
+    m = mech.n_constraints(q, qd, t, params)
+    k = s - m
+    split = VelocitySplit(mech, s, m)
+    part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
+
+    def velocities(z):
+        return split.velocities_and_rates(z[:s], z[s:], t, params, part)
+
+    v0 = split.independent_of(qd, part)
+    (qdot, B, beta), (Jqdot, JB, Jbeta) = value_and_jacfwd(velocities, jnp.concatenate([q, v0]))
+    nc = dq_dc.shape[1]
+    # ∂(q, v)/∂x for x = (q_C, v)
+    dz = jnp.concatenate(
+        [
+            jnp.concatenate([dq_dc, jnp.zeros((s, k), q.dtype)], axis=1),
+            jnp.concatenate([jnp.zeros((k, nc), q.dtype), jnp.eye(k, dtype=q.dtype)], axis=1),
+        ],
+        axis=0,
+    )
+    dK = (dz[:s], Jqdot @ dz, jnp.einsum("sjk,jn->snk", JB, dz), Jbeta @ dz)
+    out = (jnp.concatenate([pick(q, coordinates), v0]), (q, qdot, B, beta), dK)
+    if check_affine and m and not mech.nonlinear_constraints:
+        affine = constraints_affine(mech, q, qd, t, params)
+        out = jax.tree_util.tree_map(lambda x: jnp.where(affine, x, jnp.nan), out)
+    return out
+
+
+def _dynamics_traced(mech, params, K, dK, vd, t, method, coordinates):
+    """The linearised equations from the kinematics (`_kinematics_traced`) at independent
+    accelerations v̇ (k,).
+
+    With F(q, q̇, q̈) = M q̈ + h − Q (Lagrange's expression from T, or ∂S/∂q̈ − Q for "appell"),
+    the projected equations are E(x, v̇) = Bᵀ F(q, q̇, B v̇ + β), and by the chain rule
+
+        ∂E/∂x = Σ (∂B/∂x)ᵀ F + Bᵀ (F_q ∂q/∂x + F_q̇ ∂q̇/∂x + F_q̈ (∂B/∂x v̇ + ∂β/∂x)),
+        ∂E/∂v̇ = Bᵀ F_q̈ B,
+
+    with F's Jacobians from one forward-mode pass over (q, q̇, q̈). Returns the state matrix A,
+    mass, damping, stiffness, the rates ẋ and the corrected accelerations v̇ − mass⁻¹ E."""
+    q, qdot, B, beta = K
+    dq, dqdot, dB, dbeta = dK
+    s = q.shape[0]
+    nc = len(coordinates)
+    use_S = method == "appell" and mech.acceleration_energy is not None
+
+    def F(z):
+        qq, qd_, qdd = z[:s], z[s : 2 * s], z[2 * s :]
+        if use_S:
+            lhs = jax.grad(mech.acceleration_energy, argnums=2)(qq, qd_, qdd, t, params)
+        else:
+            lhs = lagrange_expression(mech, qq, qd_, qdd, t, params)
+        return lhs - mech.generalized_forces(qq, qd_, t, params)
+
+    F0, JF = value_and_jacfwd(F, jnp.concatenate([q, qdot, B @ vd + beta]))
+    Fq, Fqd, Fqdd = JF[:, :s], JF[:, s : 2 * s], JF[:, 2 * s :]
+    E = B.T @ F0
+    dqdd = jnp.einsum("snk,k->sn", dB, vd) + dbeta
+    dE = jnp.einsum("snk,s->kn", dB, F0) + B.T @ (Fq @ dq + Fqd @ dqdot + Fqdd @ dqdd)
+    mass = B.T @ Fqdd @ B
+    stiffness, damping = dE[:, :nc], dE[:, nc:]
+    vd_next = vd - solve_spd(mass, E)  # exact already unless the given accelerations were wrong
+    P = pick(dqdot, coordinates)  # ∂q̇_C/∂x (unit rows for kept coordinates that are independent)
+    A = jnp.concatenate([P, -solve_spd(mass, dE)], axis=0)
+    rates = jnp.concatenate([pick(qdot, coordinates), vd_next])
+    return A, mass, damping, stiffness, rates, vd_next
+
+
+# evaluated a handful of times: XLA's cheapest settings, each part a program of its own; under a
+# caller's jit they are one program
+_checks = one_shot_jit(_checks_traced)
+_configuration = one_shot_jit(_configuration_traced)
+_kinematics = one_shot_jit(_kinematics_traced)
+_dynamics = one_shot_jit(_dynamics_traced)
+
+
+def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
+    """`d/dt ∂T/∂q̇ − ∂T/∂q = M q̈ + h` along (q̇, q̈), without forming M (s,)."""
+
+    def gradients(q_, qd_, t_):  # ∂T/∂q and ∂T/∂q̇ from one reverse pass
+        return jax.grad(mech.kinetic, argnums=(0, 1))(q_, qd_, t_, params)
+
+    (dT_dq, _), (_, dp) = jax.jvp(gradients, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
+    return dp - dT_dq

@@ -1,0 +1,163 @@
+"""Why a simulation stopped: `STATUS`, and how a failure reaches the user.
+
+A failure is data: the compiled program returns a `STATUS` item next to the
+solution, with no host callback in it (so the program can be stored in JAX's
+persistent compilation cache and exported). `throw=True` turns a failure into
+a `SimulationError` raised in Python right after the call; when `simulate` is
+itself being traced (inside the user's `jit`, `vmap` or `grad`), the error is
+raised from inside the program instead (`equinox.error_if`).
+"""
+
+from __future__ import annotations
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.core
+import numpy as np
+
+from jaxnh._base.compat import status_code, status_code_int, status_messages
+
+
+__all__ = ["STATUS", "SimulationError", "InvalidInitialState", "describe", "error_for", "is_traced"]
+
+
+class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Why a simulation stopped: diffrax's results plus jaxnh's own."""
+
+    non_finite_input = (
+        "The initial state (q0, qd0), the report times or the parameters contain NaN or inf; "
+        "nothing was integrated. Check the argument that holds them."
+    )
+    bad_report_times = (
+        "ts must be strictly increasing (ts[0] is the start, ts[-1] the end of the run); nothing was integrated."
+    )
+    mass_matrix_not_positive_definite = (
+        "The mass matrix ∂²T/∂qd² at the initial state is not positive definite (or is singular "
+        "to working precision, judged on its Jacobi-scaled form): check the inertia parameters "
+        "and the kinetic energy `kinetic`, or use float64."
+    )
+    inconsistent_velocities = (
+        "qd0 violates the nonholonomic constraints by more than √eps relative to the velocity "
+        "scale ‖A_k‖·‖the velocities constraint k involves‖ + |c_k(q0, 0, t0)| of each constraint k, "
+        "or the smallest velocity change that meets them all is more than 10 times those allowances "
+        "(ill-conditioned constraint rows). "
+        "Use jaxnh.consistent_velocities(mech, q0, qd0, t0, params) to project qd0 onto the constraints."
+    )
+    velocity_free_constraint = (
+        "A constraint does not depend on the velocities at the initial state (a row of "
+        "∂c/∂qd is zero): a constraint on the coordinates alone is holonomic; pass it as "
+        "Mechanism(holonomic=g) with g(q, t, params), not as `constraints`."
+    )
+    constraints_not_finite = (
+        "The constraints c(q0, qd0, t0) or their velocity Jacobian ∂c/∂qd at the initial state "
+        "contain NaN or inf although the inputs are finite: a constraint is not defined or not "
+        "differentiable there (e.g. sqrt, abs or a division of a velocity at 0). Rewrite it in a form "
+        "that is smooth at the initial state, or start from another state."
+    )
+    constraints_nonlinear = (
+        "The constraints are nonlinear in the velocities (∂²c/∂qd² ≠ 0 at the initial state): "
+        "pass nonlinear_constraints=True to Mechanism."
+    )
+    constraints_nearly_dependent = (
+        "The constraint rows are nearly dependent at the initial state: a singular value of "
+        "∂c/∂qd with unit rows lies between 1e2 eps and 1e-5 of the largest (0.09 in float32). Such rows are "
+        "neither a constraint repeated (dependent to rounding, which method='lagrange' accepts) "
+        "nor independent enough to be enforced reliably: whether the near-repeat binds, and so "
+        "whether a motion is locked or free, is decided by rounding. If a constraint repeats "
+        "another, write it identically or leave it out; if it is meant to be independent, "
+        "rescale or reformulate the constraints so that their rows are well apart."
+    )
+    singular_split = (
+        "The dependent-velocity block of the constraint matrix is singular: the constraints are "
+        "redundant (rank of ∂c/∂qd < m), or the fixed choice `independent=` cannot be solved for "
+        "the dependent velocities at the initial state or became singular during the run. Pass "
+        "independent=None (the default), which chooses and re-chooses the partition during the "
+        "run, or use method='lagrange' (which accepts redundant constraints)."
+    )
+    mass_matrix_became_singular = (
+        "The solve stalled at a singular mass matrix: ∂²T/∂qd² at the last state reached is no "
+        "longer positive definite, or an inertia on its diagonal has fallen to ~0 (below √eps of "
+        "its initial value); the equations of motion break down there. Check the kinetic energy "
+        "and the parameters along the motion; Appell's equations only need the reduced inertia "
+        "Bᵀ M B to stay positive definite."
+    )
+    non_finite_output = (
+        "The solve finished but a reported value (coordinates, velocities, multipliers, energy "
+        "or constraint residual) is NaN or inf: an overflow, or the equations became singular "
+        "(a mass matrix that lost positive definiteness during the run)."
+    )
+    stiff = (
+        "The problem is stiff for an explicit solver: its steps were limited by stability, not "
+        "accuracy (step × spectral radius of the Jacobian beyond the explicit stability bound). "
+        "The values may look fine but derivatives through such a solve are unreliable. Use an "
+        "implicit solver, e.g. solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, "
+        "atol=atol))."
+    )
+
+
+MAX_STEPS_ADVICE = (
+    " If the step count is large because the problem is stiff (strong damping, a large "
+    "Baumgarte rate), use an implicit solver with a Newton root finder, e.g. "
+    "solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol)); "
+    "otherwise raise max_steps."
+)
+
+
+class SimulationError(RuntimeError):
+    """A failed simulation with `throw=True`; `.status` holds the `STATUS` item."""
+
+    def __init__(self, message: str, status=None):
+        super().__init__(message)
+        self.status = status
+
+
+class InvalidInitialState(SimulationError, ValueError):
+    """A simulation refused because its input failed a check (non-finite values, a mass
+    matrix that is not positive definite, inconsistent velocities, ...)."""
+
+
+INPUT_FAILURES = (
+    "non_finite_input",
+    "bad_report_times",
+    "mass_matrix_not_positive_definite",
+    "inconsistent_velocities",
+    "velocity_free_constraint",
+    "constraints_not_finite",
+    "constraints_nonlinear",
+    "constraints_nearly_dependent",
+)
+
+
+def error_for(status) -> SimulationError:
+    """The exception for a concrete failed status."""
+    code = status_code_int(status)
+    names = [n for n in INPUT_FAILURES if status_code_int(getattr(STATUS, n)) == code]
+    return (InvalidInitialState if names else SimulationError)(describe(status), status)
+
+
+def describe(status) -> str:
+    """'success', or the failure in words, for a concrete (unbatched) status or its integer code."""
+    code = status if isinstance(status, (int, np.integer)) else status_code_int(status)
+    if code == status_code_int(STATUS.successful):
+        return "success"
+    msg = f"solve failed: {status_messages(STATUS)[code]}"
+    if code in (status_code_int(STATUS.max_steps_reached), status_code_int(STATUS.max_steps_rejected)):
+        msg += MAX_STEPS_ADVICE
+    if code == status_code_int(STATUS.singular):
+        msg += (
+            " (a linear solve broke down: with jaxnh's formulations this means the mass matrix or the "
+            "dependent-velocity block became singular during the run)"
+        )
+    return msg
+
+
+def is_traced(*trees) -> bool:
+    """Whether any array leaf is a tracer (simulate is inside jit/vmap/grad)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+def raise_in_graph(x, status):
+    """`x`, with an error raised from inside the program when `status` is a failure."""
+    failed = status != STATUS.successful
+    return eqx.branched_error_if(x, failed, status_code(status), status_messages(STATUS))

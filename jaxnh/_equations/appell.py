@@ -1,0 +1,196 @@
+"""Appell's (Gibbs–Appell) equations (paper eqs. 17–18).
+
+With the independent velocities v and qd = B v + β0 (eq. 17), the
+accelerations are `qdd = B vd + β`, and Appell's equations are
+
+    Bᵀ ∂S/∂qdd (q, qd, B vd + β, t) = Bᵀ Q           (eq. 18)
+
+for the k = s − m independent accelerations vd only. S is the user's
+acceleration energy when given (it must be quadratic in qdd, as every
+mechanical S is, so one Newton step solves it exactly); otherwise its
+acceleration-dependent part is built from T, `S = ½ qddᵀ M qdd + qddᵀ h`,
+whose gradient is the Lagrange expression `M qdd + h`. The reduced system
+matrix `Bᵀ M B` is symmetric positive definite. The dependent velocities come
+from the constraints, so they cannot drift. Multipliers are recovered from the
+accelerations only when recorded.
+
+Which velocities are independent (the partition, `jaxnh._equations.split`):
+
+* `Appell(independent=(0,))` fixes it; the state is (q, v). A run in which the
+  dependent block becomes singular fails with `STATUS.singular_split`.
+* `Appell()` (the default) chooses it inside the compiled program from the
+  constraint matrix at the initial state (per batch member under `vmap`) and
+  re-chooses it before any step at which the dependent block has become
+  ill-conditioned (its volume below `SWITCH_BELOW` of the best block's);
+  a step during which the block's determinant changes sign is rejected and
+  retried shorter. The state is (q, v, partition), the partition carried as
+  a float vector of indices that the step-size control ignores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jaxnh._base.linalg import mm, solve_spd
+from jaxnh._base.status import STATUS
+from jaxnh._equations.base import Formulation, multipliers_from_accelerations
+from jaxnh._equations.split import (
+    best_partition,
+    block_determinant,
+    constraint_matrix,
+    partition_quality,
+    resolve_independent,
+    select,
+    SWITCH_BELOW,
+    VelocitySplit,
+)
+from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.terms import projected_terms
+
+
+class Appell(Formulation):
+    """Gibbs–Appell equations in the independent velocities.
+
+    Arguments:
+        independent: indices of the independent velocities, fixed for the whole
+            run; default None: chosen at the initial state and re-chosen during
+            the run (see the module docstring).
+        repartition: with `independent=None`, whether the choice may change
+            during the run (default True).
+    """
+
+    independent: Optional[tuple] = eqx.field(static=True, default=None)
+    repartition: bool = eqx.field(static=True, default=True)
+
+    name = "appell"
+
+    def bind(self, mech, s, m):
+        if m >= s:
+            raise ValueError(
+                f"method={self.name!r}: the mechanism has m={m} constraints for s={s} coordinates: no independent "
+                "velocity is left for Appell's equations, or some constraints are linearly dependent (which they "
+                "cannot use either); use method='lagrange'"
+            )
+        ind = resolve_independent(mech, self.independent, s, m)
+        return dataclasses.replace(self, mech=mech, s=s, m=m, independent=ind)
+
+    @property
+    def split(self) -> VelocitySplit:
+        return VelocitySplit(self.bound_mech, self.s, self.m)
+
+    @property
+    def traced(self) -> bool:
+        """Whether the partition is data carried in the state."""
+        return self.independent is None and self.m > 0
+
+    def partition(self, y):
+        """The partition in use for the state y."""
+        if not self.traced:
+            return self.independent if self.independent is not None else tuple(range(self.s))
+        return jnp.round(y[2]).astype(jnp.int32)
+
+    def state(self, q, qd, t, params):
+        if not self.traced:
+            return (q, self.split.independent_of(qd, self.partition(None)))
+        perm, _ = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
+        return (q, select(qd, perm, self.s - self.m)[0], perm.astype(q.dtype))
+
+    def unpack(self, y, t, params):
+        q, v = y[0], y[1]
+        return q, self.split.velocities(q, v, t, params, self.partition(y))
+
+    def error_mask(self):
+        return (1.0, 1.0, 0.0) if self.traced else None
+
+    def _independent_accelerations(self, q, v, t, params, part):
+        mech = self.bound_mech
+        qd, B, beta = self.split.velocities_and_rates(q, v, t, params, part)
+        Q = mech.generalized_forces(q, qd, t, params)
+        if mech.acceleration_energy is None:
+            K, r = projected_terms(mech, q, qd, t, params, B, beta)
+            rhs = mm(B.T, Q) - r
+        else:
+            dS = jax.grad(mech.acceleration_energy, argnums=2)
+            g0, H = jax.linearize(lambda a: dS(q, qd, a, t, params), beta)
+            K = mm(B.T, jax.vmap(H, in_axes=1, out_axes=1)(B))
+            rhs = mm(B.T, Q - g0)
+        vd = solve_spd(K, rhs)
+        return qd, mm(B, vd) + beta, vd
+
+    def _state_partition(self, q, qd, t, params):
+        if not self.traced:
+            return self.partition(None)
+        return best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)[0]
+
+    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+        part = self._state_partition(q, qd, t, params)
+        v = self.split.independent_of(qd, part)
+        qd, qdd, _ = self._independent_accelerations(q, v, t, params, part)
+        lam = multipliers_from_accelerations(self.bound_mech, q, qd, qdd, t, params) if multipliers else None
+        return qdd, lam
+
+    def vector_field(self, t, y, params):
+        q, v = y[0], y[1]
+        qd, _, vd = self._independent_accelerations(q, v, t, params, self.partition(y))
+        return (qd, vd, jnp.zeros_like(y[2])) if self.traced else (qd, vd)
+
+    def step_maps(self):
+        if self.m == 0:
+            return None
+        return _Partitioning(self.traced and self.repartition)
+
+    def check(self, q, qd, t, params):
+        if self.m == 0:
+            return jnp.asarray(True), STATUS.successful
+        tiny = 1e3 * jnp.finfo(q.dtype).eps
+        if self.traced:
+            _, vol = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
+            ok = vol > tiny
+        else:
+            ratio, _, _ = partition_quality(self.bound_mech, q, qd, t, params, self.partition(None), self.s - self.m)
+            ok = ratio > tiny
+        # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+        return ok, STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
+
+
+class _Partitioning(StepMaps):
+    """Watch (and, with `switch`, re-choose) the partition around every step.
+
+    The solve's args are `(formulation, params, ok)`.
+    """
+
+    switch: bool = eqx.field(static=True)
+
+    def pre(self, t, y, args):
+        if not self.switch:
+            return y, jnp.asarray(False)
+        f, params, ok = args
+        q, v, code = y
+        perm = f.partition(y)
+        qd = f.split.velocities(q, v, t, params, perm)
+        ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
+        switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
+        new = jnp.where(switch, best, perm)
+        v_new = jnp.where(switch, select(qd, new, f.s - f.m)[0], v)
+        return (q, v_new, new.astype(code.dtype)), switch
+
+    def post(self, t0, y0, t1, y1, args):
+        f, params, ok = args
+        part = f.partition(y1)
+        det = []
+        for y, t in ((y0, t0), (y1, t1)):
+            # A = ∂c/∂qd does not depend on qd for linear constraints: skip the velocity solve
+            qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(y[0])
+            det.append(block_determinant(constraint_matrix(f.mech, y[0], qd, t, params), part, f.s - f.m))
+        # after a failed initial check the state is a zero stand-in under a zero field:
+        # nothing to watch, and the solve must end at once rather than reject every step
+        crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
+        if self.switch:
+            return y1, None, crossed, jnp.asarray(False)
+        # a fixed partition cannot be changed: passing through a singular block fails the solve
+        return y1, None, jnp.asarray(False), crossed

@@ -1,0 +1,135 @@
+"""The interface shared by all formulations of the equations of motion.
+
+A formulation is an object (an `eqx.Module`, so a pytree: its arrays may be
+traced, batched and differentiated) that owns everything that differs between
+ways of writing the equations of motion:
+
+* the integrated state `y` and how coordinates and velocities are recovered
+  from it (`state`, `unpack`);
+* the vector field `dy/dt` and the accelerations and multipliers at a state;
+* which components of `y` count in the step-size error control (`error_mask`);
+* what happens around each step (`step_maps`): drift control for Lagrange's
+  equations (projection), the choice of independent velocities for Appell's;
+* the checks of an initial state that only it can make (`check`).
+
+A formulation is created unbound (`jaxnh.Appell()`, `jaxnh.Lagrange(baumgarte=2.0)`)
+and bound to a mechanism and its sizes by `bind`; `simulate`, `linearize` and
+`fit` only use this interface.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import Any, Optional
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jaxnh._base.linalg import mm, solve_psd_min_norm
+from jaxnh._base.status import STATUS
+from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
+from jaxnh._model.mechanism import Mechanism
+
+
+class Formulation(eqx.Module):
+    """A way to turn a `Mechanism` into equations of motion (see the module docstring).
+
+    Attributes:
+        mech: the mechanism, once bound (`None` for a formulation as the user
+            creates it).
+        s: number of coordinates, once bound.
+        m: number of nonholonomic constraints (holonomic ones differentiated
+            included), once bound.
+    """
+
+    mech: Optional[Mechanism] = None
+    s: int = eqx.field(static=True, default=0)
+    m: int = eqx.field(static=True, default=0)
+
+    has_multipliers = True
+    name = "formulation"
+
+    def bind(self, mech: Mechanism, s: int, m: int):
+        """This formulation for `mech` with s coordinates and m constraints."""
+        return dataclasses.replace(self, mech=mech, s=s, m=m)
+
+    @property
+    def bound_mech(self) -> Mechanism:
+        """The mechanism of a bound formulation (an error for an unbound one)."""
+        if self.mech is None:
+            raise ValueError(f"the {self.name!r} formulation is not bound to a mechanism yet (see `bind`)")
+        return self.mech
+
+    @abc.abstractmethod
+    def state(self, q, qd, t, params) -> Any:
+        """Integrated state y from coordinates q (s,) and velocities qd (s,)."""
+
+    @abc.abstractmethod
+    def unpack(self, y, t, params) -> tuple[jax.Array, jax.Array]:
+        """Coordinates q (s,) and all velocities qd (s,) from the state y."""
+
+    @abc.abstractmethod
+    def accelerations(self, q, qd, t, params, multipliers: bool = False) -> tuple[jax.Array, Optional[jax.Array]]:
+        """Accelerations qdd (s,) and, if asked, multipliers λ (m,), else None."""
+
+    @abc.abstractmethod
+    def vector_field(self, t, y, params) -> Any:
+        """dy/dt for the integrated state y."""
+
+    def error_mask(self) -> Optional[tuple[float, ...]]:
+        """Static weights, one per leaf of the state: 1.0 for components in the step-size
+        error control, 0.0 for bookkeeping; None for all."""
+        return None
+
+    def step_maps(self) -> Optional[StepMaps]:
+        """A `jaxnh.StepMaps` applied around every step, or None."""
+        return None
+
+    def check(self, q, qd, t, params) -> tuple[jax.Array, diffrax.RESULTS]:
+        """(ok, STATUS) of formulation-specific checks of an initial state (in the graph)."""
+        return jnp.asarray(True), STATUS.successful
+
+    def describe_failure(self, status) -> Optional[str]:
+        """Extra words for a failure status specific to this formulation."""
+        return None
+
+
+def multipliers_from_accelerations(mech, q, qd, qdd, t, params):
+    """Multipliers λ with `M qdd + h − Q = Aᵀ λ` (least squares, minimum norm).
+
+    λ_k is the generalized constraint force of constraint k divided by
+    `∂c_k/∂qd`: for the variator it is the tangential contact force times
+    the lever arm r (N·m).
+    """
+    M, h = mass_and_velocity_terms(mech, q, qd, t, params)
+    R = mm(M, qdd) + h - mech.generalized_forces(q, qd, t, params)
+    A, _ = constraint_terms(mech, q, qd, t, params)
+    return solve_psd_min_norm(mm(A, A.T), mm(A, R))
+
+
+def as_float(x):
+    """`x` as an array of a floating dtype (the default float for integer input)."""
+    x = jnp.asarray(x)
+    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
+
+
+def as_data(params, like):
+    """`params` with its Python `float` leaves as arrays of the floating dtype of `like`.
+
+    jaxnh compiles once per structure of the parameters, not per value: a
+    Python float would otherwise be a compile-time constant (equinox treats
+    non-array leaves as static), so every new value, e.g. in a loop over J2,
+    would compile a new program. Other leaves (arrays, ints, bools, strings,
+    callables) are left as they are.
+    """
+    dtype = jnp.result_type(like, jnp.float32)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype) if type(x) is float else x, params)
+
+
+def as_time(t, like):
+    """Time as a scalar array with the floating dtype of `like`."""
+    return jnp.asarray(t, dtype=jnp.result_type(like, jnp.float32))

@@ -1,0 +1,389 @@
+"""The description of a mechanism: energies, forces and constraints.
+
+A `Mechanism` holds plain JAX functions written by the user. Every function
+takes its arguments in the same order, `(q, qd, t, params)` (the acceleration
+energy `(q, qd, qdd, t, params)`, the potential `(q, t, params)`), where
+
+* `q`  — generalized coordinates, shape (s,), in their own units (m, rad);
+* `qd` — generalized velocities dq/dt, shape (s,);
+* `t`  — time, s;
+* `params` — any pytree of parameters (dict, `eqx.Module`, ...).
+
+Nothing here is differentiated yet: the formulations in `jaxnh._equations`
+turn these functions into equations of motion by automatic differentiation.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence
+
+import equinox as eqx
+import jax
+import jax.core
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.linalg import value_and_jacfwd
+from jaxnh._model.checks import consistency_tolerance, consistent, nearly_dependent
+
+
+__all__ = ["Mechanism"]
+
+
+class Mechanism(eqx.Module):
+    """A mechanism with nonholonomic constraints, described by its energies.
+
+    Arguments:
+        kinetic: kinetic energy `T(q, qd, t, params) -> scalar`, J. Its
+            Hessian in `qd` is the mass matrix and must be positive definite.
+            T may depend on t explicitly (rheonomic mechanisms).
+        constraints: nonholonomic constraints `c(q, qd, t, params) -> (m,)`,
+            each `c_k = 0` along the motion. Linear in the velocities
+            (`A(q, t) qd + a(q, t) = 0`, paper eq. 1) or nonlinear, in which
+            case the constraint forces follow Chetaev's rule: they are
+            `Aᵀ λ` with `A = ∂c/∂qd`. Set `nonlinear_constraints=True` for
+            nonlinear ones (the Appell formulation then solves for dependent
+            velocities by Newton's method).
+        forces: generalized non-potential forces `Q(q, qd, t, params) -> (s,)`
+            (N for lengths, N·m for angles): the virtual work is `Q · δq`.
+        potential: potential energy `V(q, t, params) -> scalar`, J.
+        holonomic: holonomic constraints `g(q, t, params) -> (h,)` (each
+            `g_j = 0` along the motion, in its own units, e.g. m for a
+            contact height). They are imposed at the velocity level, as
+            `ġ = (∂g/∂q) qd + ∂g/∂t = 0` appended to the nonholonomic
+            constraints (`constraint` returns `[c, ġ]`), so every formulation,
+            `fit`, `sweep` and `linearize` handle them with no extra code; the
+            multipliers of the last h constraints are the holonomic constraint
+            forces. q0 must satisfy g = 0 (`holonomic_residual` tells);
+            g itself then drifts only at the level of the solver tolerance.
+            For an exact elimination of dependent coordinates by Newton's
+            method, see `jaxnh.HolonomicMechanism.reduced`.
+        acceleration_energy: Gibbs–Appell acceleration energy
+            `S(q, qd, qdd, t, params) -> scalar` (J/s²); used by
+            `method="appell"` when given. Only its part that depends on
+            `qdd` matters; it must be quadratic in `qdd`.
+        names: names of the coordinates, e.g. `("phi1", "phi2")`.
+        independent: default indices of the independent velocities for the
+            Appell and substituted formulations (else chosen automatically
+            from the constraint matrix at the initial state).
+        nonlinear_constraints: whether `c` is nonlinear in `qd`. The Appell
+            formulation then finds the dependent velocities by Newton's method
+            started from zero, so write such constraints linear in the
+            dependent velocities where possible (`qd2 − sqrt(qd0² + qd1²)`
+            rather than `qd0² + qd1² − qd2²`, whose Jacobian vanishes at
+            zero); Chetaev's rule gives the same constraint forces for both.
+    """
+
+    kinetic: Callable = eqx.field(static=True)
+    constraints: Optional[Callable] = eqx.field(static=True, default=None)
+    forces: Optional[Callable] = eqx.field(static=True, default=None)
+    potential: Optional[Callable] = eqx.field(static=True, default=None)
+    holonomic: Optional[Callable] = eqx.field(static=True, default=None)
+    acceleration_energy: Optional[Callable] = eqx.field(static=True, default=None)
+    names: Optional[tuple] = eqx.field(static=True, default=None)
+    independent: Optional[tuple] = eqx.field(static=True, default=None)
+    nonlinear_constraints: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        if not callable(self.kinetic):
+            raise TypeError(
+                f"Mechanism: `kinetic` must be a function T(q, qd, t, params), got {type(self.kinetic).__name__}"
+            )
+        for name in ("constraints", "forces", "potential", "acceleration_energy"):
+            f = getattr(self, name)
+            if f is not None and not callable(f):
+                raise TypeError(f"Mechanism: `{name}` must be a function or None, got {type(f).__name__}")
+        if self.holonomic is not None and not callable(self.holonomic):
+            raise TypeError(
+                "Mechanism: `holonomic` must be a function g(q, t, params) or None, "
+                f"got {type(self.holonomic).__name__}"
+            )
+        if self.names is not None and not all(isinstance(n, str) for n in self.names):
+            raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
+
+    # --- evaluation helpers used by the formulations -------------------------
+
+    def n_constraints(self, q, qd, t, params) -> int:
+        """Number m of velocity constraints (static): nonholonomic plus differentiated holonomic ones."""
+        return jax.eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
+
+    def constraint(self, q, qd, t, params):
+        """Velocity constraints `[c(q, qd, t), ġ(q, qd, t)]`, shape (m,); empty without constraints."""
+        parts = []
+        if self.constraints is not None:
+            parts.append(jnp.asarray(self.constraints(q, qd, t, params)))
+        holonomic = self.holonomic
+        if holonomic is not None:
+            _, gd = jax.jvp(
+                lambda x, t_: jnp.asarray(holonomic(x, t_, params)),
+                (q, jnp.asarray(t, q.dtype)),
+                (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)),
+            )
+            parts.append(gd.astype(jnp.result_type(qd)))
+        if not parts:
+            return jnp.zeros((0,), jnp.result_type(qd))
+        return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
+
+    def holonomic_residual(self, q, t, params):
+        """g(q, t), shape (h,) (empty without holonomic constraints): how far q is off them."""
+        if self.holonomic is None:
+            return jnp.zeros((0,), jnp.result_type(q))
+        return jnp.asarray(self.holonomic(q, t, params))
+
+    def generalized_forces(self, q, qd, t, params):
+        """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
+        Q = jnp.zeros_like(qd)
+        if self.forces is not None:
+            Q = Q + jnp.asarray(self.forces(q, qd, t, params), dtype=qd.dtype)
+        potential = self.potential
+        if potential is not None:
+            Q = Q - jax.grad(lambda x: potential(x, t, params))(q)
+        return Q
+
+    def energy(self, q, qd, t, params):
+        """Total mechanical energy T + V, J."""
+        E = self.kinetic(q, qd, t, params)
+        if self.potential is not None:
+            E = E + self.potential(q, t, params)
+        return E
+
+    def coordinate_names(self, s: int) -> tuple:
+        """Names of the s coordinates (`q0`, `q1`, ... when none were given)."""
+        return tuple(self.names) if self.names is not None else tuple(f"q{i}" for i in range(s))
+
+    # --- validation ----------------------------------------------------------
+
+    def check_shapes(self, q, qd, t, params) -> int:
+        """Check output shapes of the user functions at trace time; return m.
+
+        Raises ValueError naming the function, the shape that came and the
+        shape that was expected. The answer depends only on the mechanism and
+        the shapes and dtypes of the arguments, so it is remembered for them
+        (tracing every user function costs ≈ 3 ms of Python per call).
+        """
+        key = _signature_key(self, q, qd, t, params)
+        if key is not None and key in _SHAPES_CHECKED:
+            return _SHAPES_CHECKED[key]
+        m = self._check_shapes(q, qd, t, params)
+        if key is not None:
+            if len(_SHAPES_CHECKED) >= _SHAPES_CHECKED_MAX:
+                _SHAPES_CHECKED.pop(next(iter(_SHAPES_CHECKED)))
+            _SHAPES_CHECKED[key] = m
+        return m
+
+    def _check_shapes(self, q, qd, t, params) -> int:
+        q, qd = jnp.asarray(q), jnp.asarray(qd)
+        if q.ndim != 1:
+            raise ValueError(f"q must be a vector of coordinates, shape (s,); got shape {q.shape}")
+        s = q.shape[0]
+        if qd.shape != (s,):
+            raise ValueError(f"qd must have the shape of q, ({s},); got {qd.shape}")
+        if self.names is not None and len(self.names) != s:
+            raise ValueError(f"Mechanism `names` has {len(self.names)} entries but q has s={s} coordinates")
+
+        def out(fn, name, *args):
+            try:
+                return jax.eval_shape(fn, *args)
+            except Exception as e:  # re-raise with the function named
+                raise type(e)(f"Mechanism `{name}` failed when called with q, qd of shape ({s},): {e}") from e
+
+        T = out(self.kinetic, "kinetic", q, qd, t, params)
+        if getattr(T, "shape", None) != ():
+            raise ValueError(f"Mechanism `kinetic` must return a scalar; got shape {getattr(T, 'shape', type(T))}")
+        if not jnp.issubdtype(T.dtype, jnp.inexact):
+            raise TypeError(
+                f"Mechanism `kinetic` returned dtype {T.dtype}: T must be a floating-point scalar (it is "
+                "differentiated twice for the mass matrix); compute it from the float velocities qd, "
+                "e.g. 0.5 * J * qd[0] ** 2"
+            )
+        m = 0
+        if self.constraints is not None:
+            c = out(self.constraints, "constraints", q, qd, t, params)
+            if len(getattr(c, "shape", ())) != 1:
+                raise ValueError(
+                    f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}"
+                )
+            m = c.shape[0]
+        if self.holonomic is not None:
+            g = out(self.holonomic, "holonomic", q, t, params)
+            if len(getattr(g, "shape", ())) != 1:
+                raise ValueError(
+                    f"Mechanism `holonomic` must return a vector of shape (h,); got shape {getattr(g, 'shape', None)}"
+                )
+            m += g.shape[0]
+        if m > s:
+            raise ValueError(
+                f"Mechanism: m={m} constraints but there are only s={s} coordinates (nonholonomic and holonomic "
+                "constraints together); expected m ≤ s"
+            )
+        if self.forces is not None:
+            Q = out(self.forces, "forces", q, qd, t, params)
+            if getattr(Q, "shape", None) != (s,):
+                raise ValueError(f"Mechanism `forces` must return shape ({s},); got {getattr(Q, 'shape', None)}")
+        if self.potential is not None:
+            V = out(self.potential, "potential", q, t, params)
+            if getattr(V, "shape", None) != ():
+                raise ValueError(f"Mechanism `potential` must return a scalar; got shape {getattr(V, 'shape', None)}")
+        if self.acceleration_energy is not None:
+            S = out(self.acceleration_energy, "acceleration_energy", q, qd, qd, t, params)
+            if getattr(S, "shape", None) != ():
+                raise ValueError(
+                    f"Mechanism `acceleration_energy` must return a scalar; got shape {getattr(S, 'shape', None)}"
+                )
+        if self.independent is not None:
+            check_independent(self.independent, s, m)
+        return m
+
+    def check_finite(self, q, qd, t, params):
+        """Raise a ValueError naming the argument (or the params leaf) that holds
+        NaN or inf; traced values are skipped."""
+        leaves = {"q": q, "qd": qd, "t": t}
+        for name, x in leaves.items():
+            if _is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+                raise ValueError(f"{name} must be finite; got {np.asarray(x)}")
+        for path, leaf in jax.tree_util.tree_leaves_with_path(params):
+            if isinstance(leaf, (jax.Array, np.ndarray, float)) and _is_concrete(leaf):
+                a = np.asarray(leaf)
+                if np.issubdtype(a.dtype, np.inexact) and not np.all(np.isfinite(a)):
+                    raise ValueError(f"params{jax.tree_util.keystr(path)} must be finite; got {a}")
+
+    def check_values(self, q, qd, t, params, *, constraint_rtol: Optional[float] = None):
+        """Value checks at a concrete state (skipped for traced values).
+
+        Non-finite inputs, a mass matrix that is not positive definite, and
+        initial velocities that violate the constraints each raise a
+        ValueError that says what came and what was expected.
+        """
+        self.check_finite(q, qd, t, params)
+        if not all(_is_concrete(x) for x in (q, qd, t)) or not _params_concrete(params):
+            return
+        self._judge_state_terms(_initial_state_terms(self, q, qd, t, params), constraint_rtol=constraint_rtol)
+
+    def _judge_state_terms(self, terms, *, constraint_rtol: Optional[float] = None):
+        """The ValueErrors of `check_values`, from `_state_terms` evaluated at the state (by a
+        program of the caller's that computes them along with its own results)."""
+        M, c, A, affine, near, allowed, on_manifold = (np.asarray(x) for x in terms)
+        if not np.all(np.isfinite(M)):
+            raise ValueError(f"Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not finite:\n{M}")
+        # Cholesky's accuracy does not depend on the scaling of the coordinates
+        # (van der Sluis), so the test is on the Jacobi-scaled matrix D^-½ M D^-½:
+        # J1/J2 = 1e6 is fine even in float32, a near-singular coupling is not.
+        d = np.diag(M)
+        eig = np.linalg.eigvalsh(0.5 * (M + M.T))
+        scaled = np.linalg.eigvalsh(0.5 * (M + M.T) / np.sqrt(np.outer(np.abs(d), np.abs(d)) + np.finfo(M.dtype).tiny))
+        if np.any(d <= 0) or (
+            scaled.min() <= 1e3 * np.finfo(M.dtype).eps * max(abs(scaled).max(), np.finfo(M.dtype).tiny)
+        ):
+            raise ValueError(
+                "Mechanism `kinetic`: the mass matrix ∂²T/∂qd² at the initial state is not positive "
+                f"definite, or singular to {M.dtype} precision (eigenvalues {eig}; after scaling to a "
+                f"unit diagonal {scaled}); expected all eigenvalues > 0. Check the inertia parameters"
+                + (", or use float64." if M.dtype == np.float32 else ".")
+            )
+        if self.constraints is None:
+            return
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"Mechanism `constraints` is not finite at the initial state: c = {c}")
+        if not np.all(np.isfinite(A)):
+            raise ValueError(
+                f"Mechanism `constraints`: ∂c/∂qd at the initial state is not finite:\n{A}\n"
+                "(a constraint not differentiable there, e.g. sqrt or abs of a velocity at 0)"
+            )
+        # each constraint on its own velocity scale, as the compiled check judges it (the same
+        # functions, evaluated in the program of `_initial_state_terms`)
+        if bool(near):
+            sv = np.linalg.svd(A / np.linalg.norm(A, axis=1)[:, None], compute_uv=False)
+            raise ValueError(
+                "Mechanism `constraints`: the rows of ∂c/∂qd at the initial state are nearly dependent "
+                f"(singular values of the row-normalised matrix {sv}; "
+                "one lies between 1e2 eps and 1e-5 of the largest; 0.09 in float32). Whether the near-repeat "
+                "binds is decided by rounding: write a repeated constraint identically or leave it out, or "
+                "reformulate the constraints so that their rows are well apart."
+            )
+        if constraint_rtol is None and not bool(on_manifold):
+            raise ValueError(
+                f"qd0 violates the nonholonomic constraints: |c(q0, qd0, t0)| = {np.abs(c)}; expected ≤ {allowed} "
+                "(√eps × each constraint's velocity scale ‖∂c_k/∂qd‖ · ‖the velocities it involves‖ + "
+                "|c_k(q0, 0, t0)|, plus rounding), and a smallest correction onto the constraints of at most "
+                "10 times those allowances. "
+                "Use jaxnh.consistent_velocities to project qd0 onto the constraints."
+            )
+        if not self.nonlinear_constraints and not bool(affine):
+            raise ValueError(
+                "Mechanism `constraints` is nonlinear in qd (∂²c/∂qd² ≠ 0 at the initial state); "
+                "pass nonlinear_constraints=True to Mechanism."
+            )
+
+
+def _state_terms(mech: Mechanism, q, qd, t, params):
+    """Mass matrix, constraint values and ∂c/∂qd at one state, and the compiled checks' verdicts on
+    them (constraints declared linear in qd are; rows nearly dependent; each row's allowance for
+    |c|; qd on the constraints):
+    what `Mechanism._judge_state_terms` needs, to be traced into one program (the checks alone
+    eagerly were some 40 programs)."""
+    q, qd = jnp.asarray(q), jnp.asarray(qd)
+    M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)
+
+    def c(v):
+        return mech.constraint(q, v, t, params)
+
+    c0, A = value_and_jacfwd(c, qd)
+    a = c0 - A @ qd
+    return (
+        M,
+        c0,
+        A,
+        # affine in qd: ∂²c/∂qd² negligible against ∂c/∂qd (judged here: only the verdict leaves)
+        ~(
+            jnp.max(jnp.abs(jax.jacfwd(jax.jacfwd(c))(qd)), initial=0.0)
+            > 1e-8 * jnp.maximum(1.0, jnp.max(jnp.abs(A), initial=0.0))
+        ),
+        nearly_dependent(A),
+        consistency_tolerance(A, qd, a),
+        consistent(A, c0, qd, a),
+    )
+
+
+# run once per check: XLA's cheapest settings
+_initial_state_terms = one_shot_jit(_state_terms)
+
+
+_SHAPES_CHECKED: dict = {}
+_SHAPES_CHECKED_MAX = 256
+
+
+def _signature(x):
+    if hasattr(x, "shape") and hasattr(x, "dtype"):
+        return ("array", tuple(x.shape), str(x.dtype))
+    return ("value", type(x).__name__, x)
+
+
+def _signature_key(mech, q, qd, t, params):
+    """A hashable key of everything `check_shapes` depends on, or None if there is none."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    key = (mech, _signature(q), _signature(qd), _signature(t), treedef, tuple(_signature(x) for x in leaves))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def check_independent(independent: Sequence[int], s: int, m: int) -> tuple:
+    """Validate a choice of independent velocity indices; return it as a tuple."""
+    ind = tuple(int(i) for i in independent)
+    if len(ind) != s - m or len(set(ind)) != len(ind) or not all(0 <= i < s for i in ind):
+        raise ValueError(
+            f"independent={tuple(independent)!r}: expected {s - m} distinct indices in 0..{s - 1} "
+            f"(s={s} coordinates minus m={m} constraints)"
+        )
+    return tuple(sorted(ind))
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _params_concrete(params) -> bool:
+    return all(_is_concrete(l) for l in jax.tree_util.tree_leaves(params))

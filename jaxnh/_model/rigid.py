@@ -1,0 +1,321 @@
+"""Rigid-body kinematics: energies of a set of bodies, and wheels rolling on a plane.
+
+A wheeled mechanism is described by where its bodies are: for each body the
+position of its mass centre `r(q, t, p)` (m, inertial frame) and its
+orientation `R(q, t, p)` (3×3 rotation matrix, body axes → inertial axes).
+Everything else follows by automatic differentiation along the motion:
+
+* velocities `ṙ = (∂r/∂q) q̇ + ∂r/∂t` and the body angular velocity
+  `Ω = vee(Rᵀ Ṙ)` (body axes, rad/s);
+* the kinetic energy `T = Σ ½ m |ṙ|² + ½ Ωᵀ I Ω` (J);
+* the Gibbs–Appell acceleration energy, without the terms free of
+  accelerations, `S = Σ ½ m |r̈|² + ½ Ω̇ᵀ I Ω̇ + Ω̇ · (Ω × I Ω)` (J/s²);
+* the potential of uniform gravity `V = −Σ m g · r` (J).
+
+`Wheel` describes a thin rigid disc touching a plane: the height of its
+lowest rim point above the plane (a holonomic constraint when the wheel
+must stay on the plane) and the velocity of the wheel's material point at
+the contact (zero tangentially when it rolls without slipping: two
+nonholonomic constraints).
+
+Inertia tensors are about the mass centre, in body axes, kg·m².
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnh._base.linalg import mm
+
+
+__all__ = [
+    "RigidBodies",
+    "Wheel",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "rot_axis",
+    "skew",
+    "vee",
+    "time_derivative",
+    "angular_velocity",
+]
+
+
+# --- rotations ----------------------------------------------------------------
+
+
+def rot_x(a):
+    """Rotation by angle `a` (rad) about the x axis, a 3×3 matrix."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([o, z, z]), jnp.stack([z, c, -s]), jnp.stack([z, s, c])])
+
+
+def rot_y(a):
+    """Rotation by angle `a` (rad) about the y axis, a 3×3 matrix."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([c, z, s]), jnp.stack([z, o, z]), jnp.stack([-s, z, c])])
+
+
+def rot_z(a):
+    """Rotation by angle `a` (rad) about the z axis, a 3×3 matrix."""
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+
+
+def skew(w):
+    """The cross-product matrix `[w]×` with `[w]× x = w × x`."""
+    z = jnp.zeros_like(w[0])
+    return jnp.stack(
+        [
+            jnp.stack([z, -w[2], w[1]]),
+            jnp.stack([w[2], z, -w[0]]),
+            jnp.stack([-w[1], w[0], z]),
+        ]
+    )
+
+
+def vee(W):
+    """The vector `w` of a (nearly) skew-symmetric matrix `W = [w]×` (its skew part)."""
+    return 0.5 * jnp.stack([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+
+
+def rot_axis(axis, a):
+    """Rotation by angle `a` (rad) about the unit vector `axis` (Rodrigues' formula)."""
+    axis = jnp.asarray(axis, dtype=jnp.result_type(a, float))
+    K = skew(axis)
+    return jnp.eye(3, dtype=K.dtype) + jnp.sin(a) * K + (1 - jnp.cos(a)) * mm(K, K)
+
+
+# --- differentiation along the motion ----------------------------------------------
+
+
+def time_derivative(f: Callable, q, qd, t):
+    """`f(q, t)` and its rate `(∂f/∂q) q̇ + ∂f/∂t` along the motion (any pytree output)."""
+    t = jnp.asarray(t, dtype=jnp.result_type(q))
+    return jax.jvp(f, (q, t), (qd, jnp.ones_like(t)))
+
+
+def angular_velocity(R, Rdot, frame: str = "body"):
+    """Angular velocity from an orientation R and its rate Ṙ, rad/s.
+
+    `frame="body"`: components in body axes, `vee(Rᵀ Ṙ)`; `frame="space"`:
+    inertial components, `vee(Ṙ Rᵀ)`.
+    """
+    if frame == "body":
+        return vee(mm(R.T, Rdot))
+    if frame == "space":
+        return vee(mm(Rdot, R.T))
+    raise ValueError(f"frame must be 'body' or 'space'; got {frame!r}")
+
+
+def _as_vec3(x, name):
+    x = jnp.asarray(x)
+    if x.shape != (3,):
+        raise ValueError(f"{name}: expected a position vector of shape (3,), got shape {x.shape}")
+    return x
+
+
+def _as_mat3(x, name):
+    x = jnp.asarray(x)
+    if x.shape != (3, 3):
+        raise ValueError(f"{name}: expected a 3×3 matrix, got shape {x.shape}")
+    return x
+
+
+# --- a set of rigid bodies ----------------------------------------------------------
+
+
+class RigidBodies(eqx.Module):
+    """Rigid bodies whose poses are functions of the generalized coordinates.
+
+    Arguments:
+        poses: `poses(q, t, params) -> [(r, R), ...]`, one pair per body: `r`
+            the position of the body's mass centre (3,), m, and `R` its
+            orientation (3, 3), the rotation from body axes to inertial axes.
+            Writing all poses in one function lets bodies share frames (a
+            bicycle's rear frame carries the fork, which carries the front
+            wheel).
+        inertias: `inertias(params) -> [(m, I), ...]` in the same order: mass
+            m (kg) and central inertia tensor I (3, 3) in body axes (kg·m²).
+        gravity: optional `gravity(params) -> (3,)`, the gravitational
+            acceleration vector in inertial axes, m/s² (e.g. (0, 0, −9.81)
+            with z up); gives `potential`.
+        names: optional body names (for messages and users).
+
+    The methods `kinetic`, `acceleration_energy` and `potential` have the
+    signatures `jaxnh.Mechanism` expects, so a mechanism is
+    `Mechanism(bodies.kinetic, potential=bodies.potential,
+    acceleration_energy=bodies.acceleration_energy, constraints=...)`.
+    """
+
+    poses: Callable = eqx.field(static=True)
+    inertias: Callable = eqx.field(static=True)
+    gravity: Optional[Callable] = eqx.field(static=True, default=None)
+    names: Optional[tuple] = eqx.field(static=True, default=None)
+
+    def _poses(self, q, t, p):
+        out = self.poses(q, t, p)
+        checked = []
+        for k, pose in enumerate(out):
+            label = f"RigidBodies `poses` body {self.names[k] if self.names else k}"
+            if len(pose) != 2:
+                raise ValueError(f"{label}: expected a pair (r, R), got {len(pose)} items")
+            checked.append((_as_vec3(pose[0], label + " position r"), _as_mat3(pose[1], label + " orientation R")))
+        return checked
+
+    def _inertias(self, p, n):
+        out = list(self.inertias(p))
+        if len(out) != n:
+            raise ValueError(f"RigidBodies `inertias` returned {len(out)} (m, I) pairs for {n} bodies")
+        return [
+            (jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I")) for k, (m, I) in enumerate(out)
+        ]
+
+    def velocities(self, q, qd, t, p):
+        """Per body: mass-centre velocity ṙ (3,), m/s, and body angular velocity Ω (3,), rad/s."""
+
+        def rates(q_, t_):
+            return self._poses(q_, t_, p)
+
+        poses, dposes = time_derivative(rates, q, qd, t)
+        return [(dr, angular_velocity(R, dR)) for (r, R), (dr, dR) in zip(poses, dposes)]
+
+    def kinetic(self, q, qd, t, p):
+        """Kinetic energy `T = Σ ½ m |ṙ|² + ½ Ωᵀ I Ω`, J."""
+        vel = self.velocities(q, qd, t, p)
+        T = 0.0
+        for (v, w), (m, I) in zip(vel, self._inertias(p, len(vel))):
+            T = T + 0.5 * m * mm(v, v) + 0.5 * mm(w, mm(I, w))
+        return T
+
+    def accelerations(self, q, qd, qdd, t, p):
+        """Per body: (ṙ, Ω, r̈, Ω̇) — velocities and their rates along the motion."""
+        t = jnp.asarray(t, dtype=jnp.result_type(q))
+
+        def vel(q_, qd_, t_):
+            return self.velocities(q_, qd_, t_, p)
+
+        v, a = jax.jvp(vel, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
+        return [(v_, w_, a_, dw_) for (v_, w_), (a_, dw_) in zip(v, a)]
+
+    def acceleration_energy(self, q, qd, qdd, t, p):
+        """Acceleration energy `S = Σ ½ m |r̈|² + ½ Ω̇ᵀ I Ω̇ + Ω̇ · (Ω × I Ω)`, J/s².
+
+        Terms free of accelerations are left out (they do not enter Appell's
+        equations); S is quadratic in q̈, as `jaxnh.Mechanism` requires.
+        """
+        acc = self.accelerations(q, qd, qdd, t, p)
+        S = 0.0
+        for (_, w, a, dw), (m, I) in zip(acc, self._inertias(p, len(acc))):
+            S = S + 0.5 * m * mm(a, a) + 0.5 * mm(dw, mm(I, dw)) + mm(dw, jnp.cross(w, mm(I, w)))
+        return S
+
+    def potential(self, q, t, p):
+        """Gravitational potential `V = −Σ m g · r`, J (needs `gravity`)."""
+        if self.gravity is None:
+            raise ValueError("RigidBodies.potential: no `gravity` was given")
+        g = _as_vec3(self.gravity(p), "RigidBodies `gravity`")
+        poses = self._poses(q, t, p)
+        V = 0.0
+        for (r, _), (m, _) in zip(poses, self._inertias(p, len(poses))):
+            V = V - m * mm(g, r)
+        return V
+
+
+# --- a wheel rolling on a plane -----------------------------------------------------
+
+
+def _tangent_basis(normal):
+    """n and two orthonormal tangents: Gram–Schmidt of e_x, e_y (e_z) against n.
+
+    For a level plane (n = ±e_z) the tangents are e_x and e_y.
+    """
+    n = np.asarray(normal, dtype=float)
+    if n.shape != (3,) or not np.isclose(np.linalg.norm(n), 1.0):
+        raise ValueError(f"Wheel: `normal` must be a unit vector of 3 components; got {normal!r}")
+    basis = [n]
+    for e in np.eye(3):
+        u = e - sum(np.dot(e, b) * b for b in basis)
+        if np.linalg.norm(u) > 1e-6:
+            basis.append(u / np.linalg.norm(u))
+        if len(basis) == 3:
+            break
+    return basis[0], basis[1], basis[2]
+
+
+class Wheel(eqx.Module):
+    """A thin rigid disc of radius ρ touching the plane `normal · x = 0`.
+
+    Arguments:
+        pose: `pose(q, t, params) -> (c, R)`: the wheel centre c (3,), m, and
+            the wheel's orientation R (3, 3) (body → inertial axes).
+        radius: `radius(params)`, m.
+        axle: which body axis (0, 1 or 2) is the wheel's axle.
+        normal: unit normal of the ground plane, pointing from the ground
+            towards the wheel ("up"): (0, 0, 1) with z up, (0, 0, −1) in the
+            z-down axes of vehicle dynamics.
+
+    The contact point is the rim point lowest along `normal`:
+    `P = c − ρ u`, with `u` the unit vector in the wheel plane closest to
+    `normal` (`u ∝ n − (n·a) a`, a the axle). `height` is `n · P` (zero when
+    the wheel touches the ground: a holonomic constraint); `slip` is the
+    tangential velocity of the wheel's material point at P (zero when it
+    rolls without slipping: two nonholonomic constraints, linear in the
+    velocities). The multipliers of the `slip` constraints are the
+    tangential contact-force components along `tangents`, N.
+    """
+
+    pose: Callable = eqx.field(static=True)
+    radius: Callable = eqx.field(static=True)
+    axle: int = eqx.field(static=True, default=1)
+    normal: tuple = eqx.field(static=True, default=(0.0, 0.0, 1.0))
+
+    def __check_init__(self):
+        if self.axle not in (0, 1, 2):
+            raise ValueError(f"Wheel: `axle` must be 0, 1 or 2 (a body axis); got {self.axle!r}")
+        _tangent_basis(self.normal)
+
+    @property
+    def tangents(self):
+        """Two orthonormal directions in the ground plane (a NumPy (2, 3) array):
+        e_x and e_y projected on the plane and orthonormalised (e_x, e_y for a level plane)."""
+        _, t1, t2 = _tangent_basis(self.normal)
+        return np.stack([t1, t2])
+
+    def _geometry(self, c, R, p):
+        n = jnp.asarray(self.normal, dtype=c.dtype)
+        a = R[:, self.axle]
+        u = n - mm(n, a) * a
+        u = u / jnp.sqrt(mm(u, u))
+        return c - self.radius(p) * u
+
+    def contact_point(self, q, t, p):
+        """The contact point P (3,), m: the rim point lowest along the normal."""
+        c, R = self.pose(q, t, p)
+        return self._geometry(_as_vec3(c, "Wheel `pose` centre"), _as_mat3(R, "Wheel `pose` orientation"), p)
+
+    def height(self, q, t, p):
+        """Height of the lowest rim point above the plane, m (scalar; 0 on the ground)."""
+        n = jnp.asarray(self.normal)
+        return mm(n, self.contact_point(q, t, p))
+
+    def contact_velocity(self, q, qd, t, p):
+        """Velocity of the wheel's material point at the contact, m/s (3,)."""
+        (c, R), (dc, dR) = time_derivative(lambda q_, t_: self.pose(q_, t_, p), q, qd, t)
+        P = self._geometry(c, R, p)
+        w = angular_velocity(R, dR, frame="space")
+        return dc + jnp.cross(w, P - c)
+
+    def slip(self, q, qd, t, p):
+        """Tangential slip velocity at the contact along `tangents`, m/s (2,)."""
+        v = self.contact_velocity(q, qd, t, p)
+        return mm(jnp.asarray(self.tangents, dtype=v.dtype), v)

@@ -1,0 +1,138 @@
+"""What a solve checks and diagnoses about its own states, inside the compiled program.
+
+* `initial_checks`: the initial state against the mechanism (`jaxnh._model.checks`) and the
+  formulation's own conditions, as one `STATUS`;
+* `diagnose_stall`: what is wrong at the last state of a failed solve (a mass matrix gone
+  singular, a dependent block gone singular);
+* `spectral_radius`: the stiffness estimate that tells a derivative through the steps of an
+  explicit method held back by stability.
+
+Each gives a status instead of raising, so the outcome is the same eagerly and under `jit`,
+`vmap` (per batch member) and `grad`. `simulate` includes the diagnosis and the stiffness
+estimate only in scenes that need them.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+
+from jaxnh._base.linalg import value_and_jacfwd
+from jaxnh._base.status import STATUS
+from jaxnh._equations.appell import Appell
+from jaxnh._equations.split import partition_quality
+from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_ok, nearly_dependent
+
+
+__all__ = ["initial_checks", "diagnose_stall", "spectral_radius", "STIFF_ABOVE", "STALLED_SPLIT_BELOW"]
+
+STALLED_SPLIT_BELOW = 1e-4
+"""A failed solve whose last state has a dependent block this much worse conditioned than
+the best available one is reported as a singular split."""
+
+
+def initial_checks(form, q, qd, t, params):
+    """(ok, STATUS) for the initial state (q, qd) at t of a bound formulation."""
+    mech = form.mech
+    pd = mass_matrix_ok(mech, q, qd, t, params)
+    # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
+    ok = pd
+    if form.m:
+
+        def c(v):
+            return mech.constraint(q, v, t, params)
+
+        c0, A = value_and_jacfwd(c, qd)
+        a = c(jnp.zeros_like(qd))
+        finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
+        velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
+        on_manifold = consistent(A, c0, qd, a)
+        linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
+        near = nearly_dependent(A)
+        form_ok, form_status = form.check(q, qd, t, params)
+        # the first failure in this order is reported
+        for good, item in (
+            (finite, STATUS.constraints_not_finite),
+            (~velocity_free, STATUS.velocity_free_constraint),
+            (linear_ok, STATUS.constraints_nonlinear),
+            (~near, STATUS.constraints_nearly_dependent),
+            (form_ok, form_status),
+            (on_manifold, STATUS.inconsistent_velocities),
+        ):
+            status = STATUS.where(ok & ~good, item, status)
+            ok = ok & good
+    return ok, status
+
+
+def _mass_diagonal(mech, q, qd, t, params):
+    return jnp.diag(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
+
+
+def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
+    """The status of a failed solve, refined by what is wrong at the last state reached.
+
+    A solve that stalls (step limit, step size collapse) where the equations
+    themselves break down says so: a mass matrix that is no longer positive
+    definite, or whose diagonal (an inertia) has fallen below √eps of its value
+    at the start `start = (q0, qd0, t0)` (the step before the breakdown), or
+    (Appell's equations with a fixed partition) a dependent block that has
+    become singular.
+    """
+    stalled = (status != STATUS.successful) & (status != STATUS.singular_split)
+    q, qd = form.unpack(y, t, params)
+    # a configuration to judge: finite coordinates (a dependent velocity through a singular block
+    # is infinite, and is replaced by 0: the blocks of linear constraints do not depend on it)
+    finite = jnp.all(jnp.isfinite(q)) & jnp.isfinite(t)
+    q = jnp.where(finite, q, 0.0)
+    qd = jnp.where(finite & jnp.isfinite(qd), qd, 0.0)
+    pd = mass_matrix_ok(form.mech, q, qd, t, params)
+    if start is not None:
+        q0, qd0, t0 = start
+        d0 = _mass_diagonal(form.mech, q0, qd0, t0, params)
+        d1 = _mass_diagonal(form.mech, q, qd, t, params)
+        collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
+        pd = pd & ~collapsed
+    status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
+    if isinstance(form, Appell) and form.m:
+        ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
+        status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
+    return status
+
+
+STIFF_ABOVE = 1.5
+"""Step × spectral radius above which a solve by an explicit method counts as stiff.
+
+An explicit Runge–Kutta method is stable for h·|λ| up to about 3.3 (Tsit5,
+Dopri5) or 6 (8th-order pairs) along the negative real axis; steps chosen for
+accuracy on a non-stiff problem give h·ρ well below 1 at the tolerances used
+here. A solve whose typical step times the Jacobian's spectral radius is
+above 1.5 has been held back by stability: its values are still accurate
+(the error control sees to that) but its derivative through the steps, in
+reverse mode, is not (measured: damping 300/s on the variator, −5.6e93
+against −6.0e-6)."""
+
+
+def spectral_radius(form, y, t, params, iterations: int = 12):
+    """An estimate of the spectral radius of ∂f/∂y (1/s) at a state, by power iteration
+    with Jacobian-vector products (no matrix formed, runs on any device)."""
+    z, unravel = jax.flatten_util.ravel_pytree(y)
+
+    def f(z_):
+        return jax.flatten_util.ravel_pytree(form.vector_field(t, unravel(z_), params))[0]
+
+    _, jvp = jax.linearize(f, z)
+    v = jnp.ones_like(z) / jnp.sqrt(z.size) + 0.01 * jnp.arange(z.size, dtype=z.dtype) / z.size
+
+    # two steps per iteration, so complex pairs (oscillations) converge in modulus too
+    def body2(i, carry):
+        v, _ = carry
+        w = jvp(jvp(v))
+        n = jnp.linalg.norm(w)
+        return w / jnp.where(n > 0, n, 1.0), jnp.sqrt(n)
+
+    _, rho = jax.lax.fori_loop(0, iterations, body2, (v, jnp.zeros((), z.dtype)))
+    return rho

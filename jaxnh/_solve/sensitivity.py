@@ -1,0 +1,357 @@
+"""Forward sensitivities: derivatives of a solve by integrating the variational equations.
+
+For a state y' = f(t, y, p) the sensitivities S = ∂y/∂(y0, p) obey
+
+    S' = ∂f/∂y S + ∂f/∂p,        S(t0) = [I | 0],
+
+one column per differentiated scalar (an entry of q0/qd0 or of a parameter
+leaf). `ForwardSensitivity` integrates (y, S) together in the same Runge–Kutta
+solver. An RK method applied to the variational equations is the derivative
+of the RK solution for the same steps, so the result is the derivative of the
+computed solution.
+
+Error control includes the sensitivities (as CVODES does with `errconS`):
+the step size is chosen so that both the state and every sensitivity column
+meet the tolerances (the norm is the larger of the two RMS norms). Without
+this, an explicit method running at its stability limit on a stiff problem
+keeps the state accurate while its sensitivities grow without bound (damping
+of 300/s on the variator: a derivative of −5.6e93 against −6.0e-6). Step
+maps of the formulation (re-choosing Appell's partition, projection for
+Lagrange's) are applied to the sensitivity columns by their derivatives
+(`jaxnh._solve.stepping.SensitivityMaps`), so sensitivities compose with any
+stabilisation.
+
+It is wired in as a `jax.custom_jvp` whose tangent output is `S · tangent`:
+linear in the tangents, so `jax.jvp`/`jax.jacfwd` *and* `jax.grad`/`jax.jacrev`
+(which transpose that product) both work, and one augmented solve serves every
+mode. Only the columns of inputs that are actually differentiated are built.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import optimistix as optx
+
+from jaxnh._base.compat import no_host_callbacks
+from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
+
+
+__all__ = ["ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "choose_adjoint", "diffrax_solve"]
+
+FORWARD_MAX_PARAMETERS = 64
+"""Above this many float scalars in (params, q0, qd0) the automatic choice is reverse mode."""
+
+
+class ForwardSensitivity(eqx.Module):
+    """Derivatives of `simulate` by forward sensitivities (for jvp, jacfwd, grad).
+
+    The cost of a derivative is one solve of the state and its P sensitivity
+    columns, P = number of differentiated scalars: cheapest for up to a few
+    tens of parameters. Report times `ts` cannot be differentiated this way,
+    and dense output and events need a diffrax adjoint.
+
+    Arguments:
+        error_control: include the sensitivities in the step-size error
+            control (default True; see the module docstring).
+    """
+
+    error_control: bool = eqx.field(static=True, default=True)
+
+    def solve(
+        self,
+        vector_field,
+        solver,
+        maps,
+        y0,
+        args,
+        saveat,
+        controller,
+        *,
+        t0,
+        t1,
+        max_steps,
+        dt0,
+        error_mask=None,
+    ):
+        """The solve of `vector_field(t, y, args)` from y0 at t0 to t1, saved at `saveat`.
+
+        Returns `(ts, ys, result, stats)`, differentiable in `args` and `y0` by
+        forward sensitivities. `maps` (a `StepMaps` or None) is applied around
+        every step; `error_mask` (a static tuple of 0/1, one per leaf of y0)
+        excludes bookkeeping components from the error control.
+        """
+        return _solve(
+            args,
+            y0,
+            controller,
+            t0,
+            t1,
+            saveat,
+            vector_field=vector_field,
+            solver=solver,
+            maps=maps,
+            max_steps=max_steps,
+            dt0=dt0,
+            error_mask=error_mask,
+            error_control=self.error_control,
+        )
+
+
+def _masked_rms(err, mask):
+    w = jnp.sum(mask)
+    return jnp.sqrt(jnp.sum(mask * err**2) / jnp.maximum(w, 1))
+
+
+def _flat_mask(error_mask, y0):
+    """Per-element weights (n,) from per-leaf weights of y0 (None: all ones)."""
+    leaves = jtu.tree_leaves(y0)
+    weights = (1.0,) * len(leaves) if error_mask is None else error_mask
+    return jnp.concatenate([jnp.full((x.size,), w, jnp.result_type(x)) for x, w in zip(leaves, weights)])
+
+
+def diffrax_solve(
+    vector_field,
+    solver,
+    maps,
+    y0,
+    args,
+    saveat,
+    controller,
+    *,
+    t0,
+    t1,
+    max_steps,
+    dt0,
+    adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode(),
+    event=None,
+    progress_meter=None,
+    error_mask=None,
+):
+    """One `diffrax.diffeqsolve` of y' = vector_field(t, y, args) with `maps` around every step,
+    the `error_mask` applied to a default-norm PID controller, and throw=False."""
+    if maps is not None:
+        solver = MappedSolver(solver, maps)
+    if error_mask is not None and isinstance(controller, diffrax.PIDController) and _default_norm(controller):
+        flat_mask = _flat_mask(error_mask, y0)
+        controller = eqx.tree_at(
+            lambda c: c.norm, controller, lambda e: _masked_rms(jax.flatten_util.ravel_pytree(e)[0], flat_mask)
+        )
+    kwargs = {} if progress_meter is None else {"progress_meter": progress_meter}
+    with no_host_callbacks():
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(vector_field),
+            solver,
+            t0=t0,
+            t1=t1,
+            dt0=dt0,
+            y0=y0,
+            args=args,
+            saveat=saveat,
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            adjoint=adjoint,
+            event=event,
+            throw=False,
+            **kwargs,
+        )
+
+
+def _default_norm(controller) -> bool:
+    return controller.norm is optx.rms_norm
+
+
+def _plain(
+    args,
+    y0,
+    controller,
+    t0,
+    t1,
+    saveat,
+    *,
+    vector_field,
+    solver,
+    maps,
+    max_steps,
+    dt0,
+    error_mask,
+    norm=None,
+):
+    if norm is not None:
+        controller = eqx.tree_at(lambda c: c.norm, controller, norm)
+    sol = diffrax_solve(
+        vector_field,
+        solver,
+        maps,
+        y0,
+        args,
+        saveat,
+        controller,
+        t0=t0,
+        t1=t1,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=None if norm is not None else error_mask,
+    )
+    return sol.ts, sol.ys, sol.result, sol.stats
+
+
+@eqx.filter_custom_jvp
+def _solve(
+    args,
+    y0,
+    controller,
+    t0,
+    t1,
+    saveat,
+    *,
+    vector_field,
+    solver,
+    maps,
+    max_steps,
+    dt0,
+    error_mask,
+    error_control,
+):
+    return _plain(
+        args,
+        y0,
+        controller,
+        t0,
+        t1,
+        saveat,
+        vector_field=vector_field,
+        solver=solver,
+        maps=maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=error_mask,
+    )
+
+
+@_solve.def_jvp
+def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0, error_mask, error_control):
+    args, y0, controller, t0, t1, saveat = primals
+    t_args, t_y0, *t_rest = tangents
+    if any(x is not None for x in jtu.tree_leaves(t_rest)):
+        raise NotImplementedError(
+            "ForwardSensitivity differentiates with respect to the parameters and the initial state only, "
+            "not the report times or controller settings; use adjoint=diffrax.RecursiveCheckpointAdjoint() for those."
+        )
+    is_none = lambda x: x is None  # noqa: E731
+    p_mask = jtu.tree_map(lambda t: t is not None, t_args, is_leaf=is_none)
+    y_mask = jtu.tree_map(lambda t: t is not None, t_y0, is_leaf=is_none)
+    p_diff, p_rest = eqx.partition(args, p_mask)
+    tp_diff = eqx.filter(t_args, p_mask, is_leaf=is_none)
+    p_leaves, p_def = jtu.tree_flatten(p_diff)
+    y_leaves, y_def = jtu.tree_flatten(y0)
+    y_on = jtu.tree_leaves(y_mask)
+    sizes_p = [x.size for x in p_leaves]
+    sizes_y = [x.size if on else 0 for x, on in zip(y_leaves, y_on)]
+    P = sum(sizes_p) + sum(sizes_y)
+    kw = dict(
+        vector_field=vector_field,
+        solver=solver,
+        maps=maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=error_mask,
+    )
+    if P == 0:
+        out = _plain(args, y0, controller, t0, t1, saveat, **kw)
+        return out, jtu.tree_map(lambda _: None, out)
+
+    dtype = jnp.result_type(*y_leaves)
+    eye = jnp.eye(P, dtype=dtype)
+    # Column j is the derivative along one scalar input: y-columns first, then args.
+    offset = 0
+    S0 = []
+    for x, n in zip(y_leaves, sizes_y):
+        block = jnp.zeros((P, x.size), x.dtype)
+        if n:
+            block = eye[:, offset : offset + n].astype(x.dtype)
+            offset += n
+        S0.append(block.reshape((P,) + x.shape))
+    E = []
+    for x, n in zip(p_leaves, sizes_p):
+        E.append(eye[:, offset : offset + n].astype(x.dtype).reshape((P,) + x.shape))
+        offset += n
+    S0 = jtu.tree_unflatten(y_def, S0)
+    E = jtu.tree_unflatten(p_def, E)
+
+    # The augmented state (y, S) travels as one flat vector: the solver then
+    # handles one array instead of 2 × (leaves of y), which costs less per step.
+    z0, unravel = jax.flatten_util.ravel_pytree((y0, S0))
+    ny = sum(x.size for x in y_leaves)
+
+    def augmented(t, z, a):
+        y, S = unravel(z)
+        pd, E_ = a
+        fy, lin = jax.linearize(lambda y_, pd_: vector_field(t, y_, eqx.combine(pd_, p_rest)), y, pd)
+        return jax.flatten_util.ravel_pytree((fy, jax.vmap(lin)(S, E_)))[0].astype(z.dtype)
+
+    mask = _flat_mask(error_mask, y0).astype(dtype)
+    mask_S = jnp.tile(mask, P)
+
+    def norm(e):
+        ey = _masked_rms(e[:ny], mask)
+        if not error_control:  # the steps of the plain solve: the state alone
+            return ey
+        return jnp.maximum(ey, _masked_rms(e[ny:], mask_S))
+
+    z_maps = None if maps is None else SensitivityMaps(maps, unravel, p_rest)
+    ts, zs, result, stats = _plain(
+        (p_diff, E),
+        z0,
+        controller,
+        t0,
+        t1,
+        saveat,
+        vector_field=augmented,
+        solver=solver,
+        maps=z_maps,
+        max_steps=max_steps,
+        dt0=dt0,
+        error_mask=None,
+        norm=norm,
+    )
+    if isinstance(zs, list):  # several SubSaveAts
+        ys, Ss = zip(*[jax.vmap(unravel)(z) for z in zs])
+        ys, Ss = list(ys), list(Ss)
+    else:
+        assert zs is not None  # simulate always saves at the report times
+        ys, Ss = jax.vmap(unravel)(zs)
+    # Tangent of the inputs as one vector, in the column order above.
+    parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]
+    parts += [jnp.ravel(t).astype(dtype) for t in jtu.tree_leaves(tp_diff)]
+    tvec = jnp.concatenate(parts)
+    # saved sensitivities have shape (n, P, ...): contract the column axis
+    t_ys = jtu.tree_map(lambda s: jnp.tensordot(s, tvec, axes=([1], [0])).astype(s.dtype), Ss)
+    no_tangent = lambda tree: jtu.tree_map(lambda _: None, tree)  # noqa: E731
+    return (ts, ys, result, stats), (no_tangent(ts), t_ys, no_tangent(result), no_tangent(stats))
+
+
+def count_float_scalars(*trees) -> int:
+    """Number of float scalars in the array leaves of `trees`."""
+    return sum(math.prod(jnp.shape(x)) for x in jtu.tree_leaves(trees) if eqx.is_inexact_array(x))
+
+
+def choose_adjoint(adjoint, *inputs, dense: bool = False, max_forward: int = FORWARD_MAX_PARAMETERS):
+    """The one forward/reverse policy of `simulate` and `fit`.
+
+    `adjoint=None`: `ForwardSensitivity()` for at most `max_forward` float
+    scalars in the inputs (one augmented solve serves grad, jacfwd and jvp),
+    else `diffrax.RecursiveCheckpointAdjoint()`; dense output and events
+    always take the diffrax adjoint. An adjoint given is returned unchanged.
+    """
+    if adjoint is not None:
+        return adjoint
+    if dense or count_float_scalars(*inputs) > max_forward:
+        return diffrax.RecursiveCheckpointAdjoint()
+    return ForwardSensitivity()

@@ -1,0 +1,704 @@
+"""`simulate`: one compiled composition of a formulation, a diffrax solver, a step-size
+controller, what to save, an event and an adjoint.
+
+Everything value-dependent happens inside the compiled program: the checks of
+the initial state (their outcome is a `STATUS`, no host callback), the choice
+of independent velocities for Appell's equations (per batch member under
+`vmap`, re-chosen during the run), the solve and the recorded quantities.
+Python only resolves the static options, so a repeat call costs little more
+than the compiled solve.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable, Optional
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnh._base.compat import status_code
+from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
+from jaxnh._equations import Appell, as_formulation, Lagrange
+from jaxnh._equations.base import as_data, as_float
+from jaxnh._equations.scalarize import scalarized
+from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.profiles import declared_breakpoints
+from jaxnh._solve.diagnose import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
+from jaxnh._solve.rk import UnrolledTsit5
+from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
+from jaxnh._solve.solution import DenseMotion, Solution
+
+
+__all__ = [
+    "Solution",
+    "simulate",
+    "RECORDABLE",
+    "STABILIZATIONS",
+    "STATUS",
+    "default_solver",
+    "DOP853_BELOW_RTOL",
+    "DOPRI8_BELOW_RTOL_LOOPED",
+    "UNROLL_MAX_OPERATIONS",
+    "vector_field_operations",
+    "field",
+]
+
+RECORDABLE = ("multipliers", "energy", "residual")
+STABILIZATIONS = (None, "baumgarte", "projection")
+
+DOP853_BELOW_RTOL = 1e-9
+"""`default_solver` switches from a 5th- to an 8th-order method below this rtol
+(the name is historical: the 8th-order default is `diffrax.Dopri8`)."""
+
+DOPRI8_BELOW_RTOL_LOOPED = 1e-5
+"""Where jaxnh's unrolled Tsit5 is not used (large vector fields, "lagrange"),
+`default_solver` switches to `diffrax.Dopri8` already below this rtol: both
+diffrax solvers loop over their stages, and on the work-precision benchmarks
+Dopri8 was the faster of the two at every error below ≈ 1e-5 (10-coordinate
+mechanism, both forms; variator, Lagrange form: benchmarks/RESULTS.md,
+"Default solver")."""
+
+UNROLL_MAX_OPERATIONS = 300
+"""Vector fields of at most this many JAX operations may get jaxnh's unrolled Tsit5.
+
+An unrolled step holds one copy of the vector field per stage, which XLA
+compiles and schedules separately: for a small mechanism (the variator's
+Appell form) that removes diffrax's per-stage loop overhead; for a large one
+(a 10-coordinate mechanism, the Whipple bicycle) it multiplied the compile
+time and ran up to 2× slower than diffrax's Tsit5, which loops over its
+stages (benchmarks/RESULTS.md).
+"""
+
+
+def default_solver(rtol: float, operations: Optional[int] = None, method: str = "appell"):
+    """The explicit solver used when `simulate(solver=None)`.
+
+    Arguments:
+        rtol: the relative tolerance of the solve.
+        operations: size of the vector field in JAX operations
+            (`vector_field_operations`); None means small.
+        method: the formulation's name ("lagrange", "appell", "substituted").
+
+    Returns the fastest choice at matched error on the work-precision
+    benchmarks (benchmarks/RESULTS.md, "Default solver"):
+    * small vector fields (at most `UNROLL_MAX_OPERATIONS`) in the "appell"
+      and "substituted" forms: jaxnh's unrolled 5th-order
+      `jaxnh.solvers.UnrolledTsit5`, and `diffrax.Dopri8` (8th order) for rtol <
+      `DOP853_BELOW_RTOL`;
+    * large vector fields and "lagrange": `diffrax.Tsit5`, and
+      `diffrax.Dopri8` for rtol < `DOPRI8_BELOW_RTOL_LOOPED`.
+    """
+    small = operations is None or operations <= UNROLL_MAX_OPERATIONS
+    if small and method != "lagrange":
+        return diffrax.Dopri8() if rtol < DOP853_BELOW_RTOL else UnrolledTsit5()
+    return diffrax.Dopri8() if rtol < DOPRI8_BELOW_RTOL_LOOPED else diffrax.Tsit5()
+
+
+def _count_operations(jaxpr) -> int:
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += 1
+        for v in eqn.params.values():
+            for sub in v if isinstance(v, (tuple, list)) else (v,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    n += _count_operations(inner)
+    return n
+
+
+def vector_field_operations(form, t, y, params) -> int:
+    """Number of JAX operations (jaxpr equations, nested ones included) in one
+    evaluation of a bound formulation's vector field: a size that does not
+    depend on values (call it while tracing: it only traces)."""
+    return _count_operations(jax.make_jaxpr(lambda y_: form.vector_field(t, y_, params))(y).jaxpr)
+
+
+def field(t, y, args):
+    """The vector field of every jaxnh solve: args = (bound formulation, params, ok).
+
+    `ok` is False when the initial state failed a check: the field is then
+    zero, so the solve finishes in a few steps instead of wandering.
+    """
+    form, params, ok = args
+    # small fields as one graph of scalar operations (fewer kernels; see jaxnh._equations.scalarize)
+    dy = scalarized(form.vector_field)(t, y, params)
+    return jax.tree_util.tree_map(lambda d, x: jnp.where(ok, d, 0).astype(x.dtype), dy, y)
+
+
+def _stages_per_step(solver) -> Optional[int]:
+    tab = getattr(solver, "tableau", None)
+    if tab is None:
+        return getattr(solver, "stages_per_step", None)
+    return tab.num_stages - (1 if tab.fsal else 0)
+
+
+@functools.lru_cache(maxsize=256)
+def _resolve(method, independent, stabilization, baumgarte_rate_given):
+    """The unbound formulation for the string/option aliases (cached: Python-side cost per call)."""
+    form = as_formulation(method, independent)
+    if stabilization not in STABILIZATIONS:
+        raise ValueError(f"stabilization must be one of {STABILIZATIONS}; got {stabilization!r}")
+    if stabilization is not None and not isinstance(form, Lagrange):
+        raise ValueError(
+            f"stabilization={stabilization!r} applies to method='lagrange' only: method={method!r} "
+            "integrates the independent velocities and cannot drift off the constraints."
+        )
+    if baumgarte_rate_given and stabilization != "baumgarte":
+        raise ValueError("baumgarte_rate is given but stabilization is not 'baumgarte'")
+    if stabilization == "baumgarte":
+        form = Lagrange(baumgarte="auto")
+    elif stabilization == "projection":
+        form = Lagrange(projection=True)
+    return form
+
+
+def _record(record, form) -> tuple:
+    record = (record,) if isinstance(record, str) else tuple(record)
+    for r in record:
+        if r not in RECORDABLE:
+            raise ValueError(f"record entries must be among {RECORDABLE}; got {r!r}")
+    if "multipliers" in record and not form.has_multipliers:
+        raise ValueError(f"record='multipliers' is not available for method={form.name!r} (it has no multipliers)")
+    return record
+
+
+def simulate(
+    mech: Mechanism,
+    params,
+    q0,
+    qd0,
+    ts,
+    method="appell",
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    record=(),
+    *,
+    independent=None,
+    saveat: Optional[diffrax.SaveAt] = None,
+    stepsize_controller: Optional[diffrax.AbstractStepSizeController] = None,
+    event: Optional[diffrax.Event] = None,
+    progress_meter: Optional[diffrax.AbstractProgressMeter] = None,
+    adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None,
+    max_steps: int = 100_000,
+    dt0=None,
+    throw: bool = True,
+    stabilization: Optional[str] = None,
+    baumgarte_rate=None,
+    dtmax=None,
+    step_ts=None,
+) -> Solution:
+    """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
+
+    Works the same eagerly and under `jax.jit`, `jax.vmap` and `jax.grad`:
+    nothing needs concrete values.
+
+    Arguments:
+        mech: the `Mechanism`.
+        params: parameter pytree passed to every user function; its arrays
+            are traced, so `jax.grad`/`jax.vmap` over it work.
+        q0: initial coordinates (s,).
+        qd0: initial velocities (s,); must satisfy the constraints to √eps
+            relative to the velocity scale (else `STATUS.inconsistent_velocities`).
+        ts: report times (n,), strictly increasing, s; ts[0] is the start and
+            ts[-1] the end.
+        method: a formulation object — `jaxnh.Appell()` (the default; state
+            (q, independent velocities), the constraints hold exactly),
+            `jaxnh.Lagrange(baumgarte=..., projection=...)` (multipliers,
+            state (q, qd)), `jaxnh.Substituted()` (the paper's wrong method,
+            for comparison) — or its name "appell", "lagrange", "substituted".
+        solver: a diffrax solver; default `default_solver(rtol, size of the
+            vector field, method)`.
+        rtol, atol: relative and absolute tolerances of the default PID step
+            control (ignored when `stepsize_controller` is given).
+        record: any of "multipliers", "energy", "residual" — computed at the
+            saved times only when asked.
+        independent: fixed indices of independent velocities ("appell",
+            "substituted"), the same as `method=jaxnh.Appell(independent=...)`;
+            default None: chosen and re-chosen inside the program.
+        saveat: a `diffrax.SaveAt` (default `SaveAt(ts=ts)`); with
+            `dense=True` the solution's `evaluate(t)` gives the motion at any t.
+        stepsize_controller: a diffrax step-size controller (default a
+            `PIDController(rtol, atol, dtmax=dtmax, step_ts=step_ts)`).
+        event: a `diffrax.Event` whose `cond_fn(t, y, args, **kwargs)` receives
+            `y = (q, qd)` and `args = params`; a terminating event stops the run
+            (the saved times after it are inf; `sol.event_mask` says which).
+        progress_meter: a diffrax progress meter (e.g. `diffrax.TqdmProgressMeter()`).
+        adjoint: how derivatives are computed. Default None: the one policy of
+            simulate and fit (`choose_adjoint`): `jaxnh.ForwardSensitivity()`
+            (sensitivities integrated with the state and included in the error
+            control; one augmented solve for grad, jacfwd and jvp) for at most
+            `jaxnh.FORWARD_MAX_PARAMETERS` float scalars in (params, q0, qd0)
+            and no dense output or event, else
+            `diffrax.RecursiveCheckpointAdjoint()`. Any diffrax adjoint may be passed.
+        max_steps: step limit; reaching it is a failed solve.
+        dt0: initial step, s (default: chosen automatically).
+        throw: raise a `jaxnh.SimulationError` when the solve fails (default).
+            With `throw=False` (recommended under `vmap`) check `sol.status`.
+        stabilization: shortcut for Lagrange's drift control: "baumgarte"
+            (`Lagrange(baumgarte=rate)`, rate `baumgarte_rate`, 1/s, default one
+            over the median report interval) or "projection"
+            (`Lagrange(projection=True)`).
+        baumgarte_rate: α for "baumgarte", 1/s.
+        dtmax: largest step, s (default: unlimited).
+        step_ts: times at which a step must end, s. An adaptive solver only
+            sees the right-hand side at its stages and can step over a change
+            that is short compared with its step (a ratio step of 1 µs in a
+            run of 0.1-s steps) with no sign in its error estimate: give the
+            time of such a change here. Profiles in `params` declare their own
+            (`jaxnh.profiles.SmoothStep`, the knots of `PiecewiseLinear`),
+            which are added to these; with an own `stepsize_controller`,
+            they are applied when it is a `diffrax.PIDController`.
+
+    Returns:
+        A `Solution`.
+    """
+    ind = None if independent is None else tuple(int(i) for i in independent)
+    if _hashable(method):  # names and array-free formulation objects: resolved once, cached
+        form = _resolve(method, ind, stabilization, baumgarte_rate is not None)
+    else:
+        form = as_formulation(method, ind)
+    if baumgarte_rate is not None:
+        form = Lagrange(baumgarte=baumgarte_rate)
+    record = _record(record, form)
+    if not _is_float_jax_array(q0) or not _is_jax_array(qd0, q0.dtype) or not _is_jax_array(ts, q0.dtype):
+        for name, x in (("q0", q0), ("qd0", qd0), ("ts", ts)):
+            _check_real_numbers(name, x)
+    q0 = q0 if _is_float_jax_array(q0) else as_float(q0)
+    qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
+    ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
+    params = as_data(params, q0)  # one program per structure of params, not per value
+    if any(_is_complex(x) for x in jax.tree_util.tree_leaves(params)):
+        _refuse_complex(params)
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(
+            f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}"
+        )
+    if q0.dtype not in (jnp.float32, jnp.float64):
+        raise ValueError(
+            f"q0 has dtype {q0.dtype}: jaxnh computes in float32 or float64; pass float32 or float64 arrays"
+        )
+    if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
+        raise TypeError(
+            "solver must be a diffrax solver object, e.g. diffrax.Tsit5() or jaxnh.solvers.UnrolledTsit5(), or None "
+            f"for the default; got {solver!r}"
+        )
+    if not isinstance(max_steps, (int, np.integer)) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer; got {max_steps!r}")
+    eps = float(np.finfo(q0.dtype).eps)
+    for name, value in (("rtol", rtol), ("atol", atol)):
+        number = isinstance(value, (int, float, np.number, np.ndarray, jax.Array)) and not isinstance(value, bool)
+        if not number or np.ndim(value) != 0 or not (0 <= float(value) < np.inf):
+            raise ValueError(
+                f"{name}={value!r}: the tolerances must be finite real numbers ≥ 0 (rtol relative, atol in the "
+                f"units of the state), e.g. rtol=1e-8, atol=1e-10"
+            )
+    if rtol < 10 * eps:
+        raise ValueError(
+            f"rtol={rtol:g} is below what {q0.dtype} can resolve (machine epsilon {eps:.2g}); "
+            f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
+        )
+    given_step_ts = step_ts is not None
+    declared = declared_breakpoints(params, q0.dtype)
+    if declared is not None:
+        step_ts = declared if step_ts is None else jnp.sort(jnp.concatenate([_as_times(step_ts, q0.dtype), declared]))
+    if step_ts is not None and stepsize_controller is not None:
+        if isinstance(stepsize_controller, diffrax.PIDController):
+            stepsize_controller = diffrax.ClipStepSizeController(
+                stepsize_controller, step_ts=_as_times(step_ts, q0.dtype)
+            )
+        elif given_step_ts:
+            raise ValueError(
+                f"step_ts: applies to the default controller or a diffrax.PIDController; with "
+                f"stepsize_controller={type(stepsize_controller).__name__}, put the step times in it"
+            )
+        # (an own controller of another kind chooses its steps itself: the profiles' breakpoints are left to it)
+        step_ts = None
+    if stepsize_controller is None:
+        # the tolerances are data (a new rtol reuses the compiled program unless it
+        # changes the default solver's order, see `_rtol_class`)
+        if dtmax is None and step_ts is None and _hashable(rtol) and _hashable(atol):
+            stepsize_controller = _pid(rtol, atol, q0.dtype)  # cached: no arrays made per call
+        else:
+            tol: dict[str, Any] = dict(rtol=jnp.asarray(rtol, dtype=q0.dtype), atol=jnp.asarray(atol, dtype=q0.dtype))
+            stepsize_controller = diffrax.PIDController(**tol, dtmax=dtmax)
+            if step_ts is not None:
+                stepsize_controller = diffrax.ClipStepSizeController(
+                    stepsize_controller, step_ts=_as_times(step_ts, q0.dtype)
+                )
+    if (
+        dt0 is not None
+        and not is_traced(dt0)
+        and not (
+            isinstance(dt0, (int, float, np.number, np.ndarray, jax.Array)) and np.ndim(dt0) == 0 and float(dt0) > 0
+        )
+    ):
+        raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
+    traced = is_traced(params, q0, qd0, ts, form)
+    sol = _run(
+        mech,
+        form,
+        params,
+        q0,
+        qd0,
+        ts,
+        solver,
+        stepsize_controller,
+        saveat,
+        event,
+        progress_meter,
+        adjoint,
+        dt0,
+        record=record,
+        max_steps=int(max_steps),
+        rtol=_rtol_class(float(rtol)),
+        graph_throw=bool(throw and traced),
+    )
+    if throw and not traced and np.ndim(status_code(sol.status)) == 0 and int(np.asarray(status_code(sol.status))) != 0:
+        err = error_for(sol.status)
+        if isinstance(err, ValueError):  # name the argument and show the values, eagerly
+            try:
+                _check_ts(ts)
+                mech.check_values(q0, qd0, ts[0], params)
+            except ValueError as detail:
+                err = type(err)(f"{err}\nDetails: {detail}", sol.status)
+        raise err
+    return sol
+
+
+@functools.lru_cache(maxsize=64)
+def _pid(rtol, atol, dtype):
+    # NumPy scalars: data to the compiled program (not a static constant), and safe to cache
+    # (a jnp array made while tracing would be a tracer)
+    return diffrax.PIDController(rtol=np.asarray(rtol, dtype=dtype), atol=np.asarray(atol, dtype=dtype))
+
+
+def _rtol_class(rtol: float) -> float:
+    """A stand-in for `rtol` that makes every rtol-dependent choice of the compiled
+    program (`default_solver`'s order, the lean loop's tableau) the same way.
+
+    The choices compare rtol with the thresholds `DOP853_BELOW_RTOL` and
+    `DOPRI8_BELOW_RTOL_LOOPED` (a factor > 2 apart): half of the smallest
+    threshold above rtol (1 above all) lies on the same side of each. The
+    tolerance itself reaches the step control as an array, so tolerances
+    within one class share one compiled program.
+    """
+    above = [th for th in (DOP853_BELOW_RTOL, DOPRI8_BELOW_RTOL_LOOPED) if rtol < th]
+    return 0.5 * min(above) if above else 1.0
+
+
+def _check_real_numbers(name, x):
+    """Raise, naming the argument, for input that is not an array of real numbers (strings, complex)."""
+    if is_traced(x):
+        kind = x.dtype
+    else:
+        try:
+            kind = np.asarray(x).dtype
+        except Exception as err:  # ragged lists and the like
+            raise ValueError(f"{name} must be an array of real numbers; got {x!r} ({err})") from None
+    if not (np.issubdtype(kind, np.floating) or np.issubdtype(kind, np.integer) or np.issubdtype(kind, np.bool_)):
+        raise ValueError(
+            f"{name} must be an array of real numbers (float32 or float64); got dtype {kind} from {x!r:.80}"
+            + (
+                ": drop the imaginary part explicitly if it is meant to be zero"
+                if np.issubdtype(kind, np.complexfloating)
+                else ""
+            )
+        )
+
+
+def _is_complex(x) -> bool:
+    return isinstance(x, complex) or (hasattr(x, "dtype") and np.iscomplexobj(x))
+
+
+def _as_times(step_ts, dtype):
+    """step_ts as a sorted 1-D array of the state's dtype."""
+    return jnp.sort(jnp.ravel(jnp.asarray(step_ts, dtype=dtype)))
+
+
+def _refuse_complex(params):
+    bad = [jax.tree_util.keystr(path) for path, x in jax.tree_util.tree_leaves_with_path(params) if _is_complex(x)]
+    raise ValueError(
+        f"params{', params'.join(bad)} {'is' if len(bad) == 1 else 'are'} complex: jaxnh's energies, forces and "
+        "constraints take real parameters (SI units); pass the real part explicitly if the imaginary part is zero"
+    )
+
+
+def _is_jax_array(x, dtype) -> bool:
+    return isinstance(x, jax.Array) and x.dtype == dtype
+
+
+def _is_float_jax_array(x) -> bool:
+    return isinstance(x, jax.Array) and x.dtype in (jnp.float32, jnp.float64)
+
+
+def _check_ts(ts):
+    """Raise naming the entries of concrete report times that are not finite or not increasing."""
+    a = np.asarray(ts)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"ts must be finite; got non-finite entries at {np.nonzero(~np.isfinite(a))[0].tolist()}")
+    if not np.all(np.diff(a) > 0):
+        bad = int(np.nonzero(np.diff(a) <= 0)[0][0])
+        raise ValueError(f"ts must be strictly increasing; ts[{bad}]={a[bad]:g} ≥ ts[{bad + 1}]={a[bad + 1]:g}")
+
+
+def _hashable(x) -> bool:
+    try:
+        hash(x)
+        return True
+    except TypeError:
+        return False
+
+
+def _is_float_array(x) -> bool:
+    return eqx.is_inexact_array(x)
+
+
+def _all_finite(tree):
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
+
+
+@jax.custom_jvp
+def _nan_link(bad, total):
+    """0, whose derivative with respect to `total` is NaN when `bad` is True (else 0).
+
+    Added to every output with `total` a sum over the inputs: a failed solve or
+    non-finite input then has NaN derivatives with respect to every input, in
+    forward and reverse mode, while its values are left as they are (a mask
+    on the outputs alone would hide the NaN from reverse mode).
+    """
+    return _zero_like_both(bad, total)
+
+
+def _zero_like_both(bad, total):
+    # batched like either argument, so the primal and its tangent batch alike under vmap
+    return jnp.where(bad, 0.0, 0.0).astype(total.dtype) + jnp.zeros_like(total)
+
+
+@_nan_link.defjvp
+def _nan_link_jvp(primals, tangents):
+    bad, total = primals
+    _, dtotal = tangents
+    return _zero_like_both(bad, total), dtotal * jnp.where(bad, jnp.nan, 0.0).astype(total.dtype)
+
+
+def _input_sum(tree):
+    leaves = [jnp.sum(x) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
+    return sum(leaves[1:], leaves[0]) if leaves else jnp.zeros(())
+
+
+class _UserEvent(eqx.Module):
+    """A user's event condition, called with (q, qd) and params."""
+
+    cond_fn: Callable
+
+    def __call__(self, t, y, args, **kwargs):
+        form, params, _ = args
+        q, qd = form.unpack(y, t, params)
+        return self.cond_fn(t, (q, qd), params, **kwargs)
+
+
+def _run_traced(
+    mech,
+    form,
+    params,
+    q0,
+    qd0,
+    ts,
+    solver,
+    controller,
+    saveat,
+    event,
+    progress_meter,
+    adjoint,
+    dt0,
+    *,
+    record,
+    max_steps,
+    rtol,
+    graph_throw,
+):
+    """The compiled part of `simulate`."""
+    t0 = ts[0]
+    m = mech.check_shapes(q0, qd0, t0, params)
+    s = q0.shape[0]
+    if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
+        form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
+    form = form.bind(mech, s, m)
+    finite = _all_finite((q0, qd0, ts, params, form))
+    increasing = jnp.all(jnp.diff(ts) > 0)
+    q0r = jnp.where(finite, q0, 0.0)
+    qd0r = jnp.where(finite, qd0, 0.0)
+    tsr = jnp.where(finite & increasing, ts, jnp.arange(ts.shape[0], dtype=ts.dtype))
+    t0r = tsr[0]
+    # the checks and diagnoses below only decide a status: no derivative flows through them, and
+    # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
+    checked, check_status = initial_checks(*_no_grad((form, q0r, qd0r, t0r, params)))
+    ok = finite & increasing & checked
+    y0 = form.state(q0r, qd0r, t0r, params)
+    y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
+    if graph_throw:  # an invalid input raises before the solve: the solve depends on it, so it is never pruned
+        # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
+        pre = STATUS.where(checked, STATUS.successful, check_status)  # pyright: ignore[reportArgumentType]
+        pre = STATUS.where(increasing, pre, STATUS.bad_report_times)
+        pre = STATUS.where(finite, pre, STATUS.non_finite_input)
+        y0 = jax.tree_util.tree_map(lambda x: raise_in_graph(x, pre), y0)
+    if solver is None:
+        solver = default_solver(rtol, vector_field_operations(form, t0, y0, params), form.name)
+    diagnose = saveat is None  # with the default saving, keep the last state reached for a failure's diagnosis
+    if diagnose:  # reports at ts, and separately the state at the end (or where a failed solve stopped)
+        saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=tsr), diffrax.SubSaveAt(t1=True)])
+    dense = bool(saveat.dense)
+    if event is not None:
+        # diffrax 0.7.0 (the oldest supported) has no `direction` on its Event; 0.7.2 has
+        direction = {"direction": event.direction} if hasattr(event, "direction") else {}
+        event = diffrax.Event(
+            jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
+            root_finder=event.root_finder,
+            **direction,
+        )
+    adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
+    args = (form, params, ok)
+    maps = form.step_maps()
+    kw = dict(t0=t0r, t1=tsr[-1], max_steps=max_steps, dt0=dt0, error_mask=form.error_mask())
+    event_mask = interpolation = None
+    if isinstance(adjoint, ForwardSensitivity):
+        if dense or event is not None or progress_meter is not None:
+            raise ValueError(
+                "adjoint=ForwardSensitivity() supports saving at report times only; dense output, events and "
+                "progress meters need a diffrax adjoint, e.g. diffrax.RecursiveCheckpointAdjoint()"
+            )
+        out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller, **kw)
+    else:
+        sol = diffrax_solve(
+            field,
+            solver,
+            maps,
+            y0,
+            args,
+            saveat,
+            controller,
+            adjoint=adjoint,
+            event=event,
+            progress_meter=progress_meter,
+            **kw,
+        )
+        out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
+        event_mask, interpolation = sol.event_mask, sol.interpolation
+    if out_ts is None or ys is None:
+        raise ValueError("saveat must save at some times (ts=..., t1=True or steps=True) for simulate to report them")
+    if diagnose:
+        t_end, y_end = out_ts[1][-1], jax.tree_util.tree_map(lambda x: x[-1], ys[1])
+        out_ts, ys = out_ts[0], ys[0]
+    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, out_ts)
+    out = {}
+    if "multipliers" in record:
+        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(
+            q, qd, out_ts
+        )
+    if "energy" in record:
+        out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, out_ts)
+    if "residual" in record:
+        out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, out_ts)
+    stats = dict(stats)
+    stages = _stages_per_step(solver)
+    if stages is not None and "rhs_evaluations" not in stats:
+        stats["rhs_evaluations"] = stats["num_steps"] * stages
+    # the solve's own outcome; a terminating event is a success (event_mask says which)
+    result = STATUS.promote(result)
+    result = STATUS.where(result == STATUS.event_occurred, STATUS.successful, result)  # pyright: ignore[reportArgumentType]
+    if isinstance(form, Appell):
+        result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
+    if diagnose:
+        # the state to diagnose: where the solve stopped, or the first report whose motion is not
+        # finite (a dependent velocity through a singular block is infinite at that report only)
+        rows = jnp.isfinite(out_ts) & ~(
+            jnp.all(jnp.isfinite(q.reshape(q.shape[0], -1)), axis=1) & jnp.all(jnp.isfinite(qd), axis=1)
+        )
+        first = jnp.argmax(rows)
+        y_diag = jax.tree_util.tree_map(lambda x, e: jnp.where(rows.any(), x[first], e), ys, y_end)
+        t_diag = jnp.where(rows.any(), out_ts[first], t_end)
+        result = STATUS.where((result == STATUS.successful) & rows.any(), STATUS.non_finite_output, result)
+        form_, y_, t_, params_ = _no_grad((form, y_diag, t_diag, params))
+        result = diagnose_stall(form_, y_, t_, params_, result, start=_no_grad((q0r, qd0r, t0r)))
+    if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
+        # derivatives through the steps of an explicit method held back by stability are wrong:
+        # say so (forward sensitivities in the error control are right, and need no check)
+        ratio = _stiffness(*_no_grad((form, ys, out_ts, params, stats, t0r)))
+        stats["stiffness"] = ratio
+        result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
+    status = STATUS.where(checked, result, check_status)
+    status = STATUS.where(increasing, status, STATUS.bad_report_times)
+    status = STATUS.where(finite, status, STATUS.non_finite_input)
+    reached = jnp.isfinite(out_ts)
+    bad_output = (status == STATUS.successful) & ~_all_finite(
+        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(reached, x), x, 0.0), (q, qd, out))
+    )
+    status = STATUS.where(bad_output, STATUS.non_finite_output, status)
+    failed = status != STATUS.successful
+    nan_all = ~ok
+    link = _nan_link(failed, _input_sum((params, q0, qd0, form)))
+
+    def finish(x):
+        return jnp.where(nan_all, jnp.nan, x) + link.astype(x.dtype)
+
+    q, qd = finish(q), finish(qd)
+    out = {k: finish(v) for k, v in out.items()}
+    if graph_throw:  # on every output, so that whatever the caller keeps carries the check
+        q, qd = raise_in_graph(q, status), raise_in_graph(qd, status)
+        out = {k: raise_in_graph(v, status) for k, v in out.items()}
+    return Solution(
+        ts=out_ts,
+        q=q,
+        qd=qd,
+        multipliers=out.get("multipliers"),
+        energy=out.get("energy"),
+        residual=out.get("residual"),
+        stats=stats,
+        status=status,
+        names=mech.coordinate_names(s),
+        dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
+        event_mask=event_mask,
+    )
+
+
+_run = eqx.filter_jit(_run_traced)
+"""`_run_traced` as its own compiled program (calls from outside any jit)."""
+
+
+def _explicit(solver) -> bool:
+    inner = getattr(solver, "solver", solver)
+    return not isinstance(inner, diffrax.AbstractImplicitSolver)
+
+
+def _no_grad(tree):
+    """`tree` with `stop_gradient` on its array leaves (other leaves as they are)."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
+
+
+def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
+    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states.
+
+    A diagnostic that decides the `stiff` status (and is reported as `stats["stiffness"]`); it is
+    computed with derivatives stopped at its inputs, so it has none itself."""
+    n = ts.shape[0]
+    idx = jnp.unique(jnp.linspace(0, n - 1, min(samples, n)).astype(jnp.int32), size=min(samples, n))
+    sub = jax.tree_util.tree_map(lambda x: x[idx], ys)
+    tsub = ts[idx]
+    ok = jnp.isfinite(tsub)
+    rho = jax.vmap(lambda y, t: spectral_radius(form, y, t, params))(
+        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0)
+    )
+    rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)
+    t_last = jnp.max(jnp.where(jnp.isfinite(ts), ts, t0))
+    h = (t_last - t0) / jnp.maximum(stats["num_accepted_steps"], 1)
+    return jnp.nan_to_num(h * jnp.nanmedian(rho))
+
+
+def _bcast(mask, x):
+    return mask.reshape(mask.shape + (1,) * (x.ndim - 1))

@@ -1,0 +1,114 @@
+"""`Solution`: a simulated motion, and its dense output."""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxnh._base.compat import status_code, status_code_int
+from jaxnh._base.dataframe import solution_to_dataframe
+from jaxnh._base.status import describe, STATUS
+
+
+__all__ = ["Solution", "DenseMotion"]
+
+
+class DenseMotion(eqx.Module):
+    """The motion between report times, from the solver's dense output.
+
+    `motion.evaluate(t)` gives `(q (s,), qd (s,))` at any time t (s) in the
+    integrated interval; under `jax.vmap` over t for many times.
+    """
+
+    interpolation: Any
+    form: Any
+    params: Any
+
+    def evaluate(self, t):
+        """Coordinates and velocities `(q, qd)` at time t, s."""
+        y = self.interpolation.evaluate(t)
+        return self.form.unpack(y, t, self.params)
+
+
+class Solution(eqx.Module):
+    """A simulated motion, reported at the requested times.
+
+    Attributes:
+        ts: report times (n,), s (with an event that stopped the run early,
+            the times after the stop are inf).
+        q: coordinates (n, s) at `ts`.
+        qd: velocities (n, s) at `ts` (dependent ones from the constraints for
+            "appell"/"substituted").
+        multipliers: constraint multipliers λ (n, m), when recorded: the
+            constraint forces are `Aᵀ λ` with `A = ∂c/∂qd` (for the variator
+            λ is the tangential contact force times the roller radius, N·m).
+        energy: T + V (n,), J, when recorded.
+        residual: constraint values c(q, qd, t) (n, m), when recorded; zero
+            for an exact solution.
+        stats: dict with `num_steps` (attempted), `num_accepted_steps`,
+            `num_rejected_steps`, `rhs_evaluations` (vector-field calls:
+            stages per step times attempted steps), `max_steps`, and for
+            explicit solvers whose sensitivities are not in the error
+            control `stiffness` (mean step × spectral radius of the field's
+            Jacobian, dimensionless; above 1.5 the status is `stiff`).
+            Counts and diagnostics: they carry no derivatives.
+        status: `jaxnh.STATUS` item (diffrax's `RESULTS` extended):
+            `STATUS.successful`, or why the solve failed. After a failure the
+            values past the failure time are NaN or inf, never a
+            plausible-looking answer, and derivatives are NaN.
+        dense: with `saveat=diffrax.SaveAt(..., dense=True)`, a `DenseMotion`
+            (`sol.evaluate(t)`), else None.
+        event_mask: with `event=`, which event stopped the run (diffrax's
+            convention), else None.
+        names: coordinate names.
+    """
+
+    ts: Float[Array, " n"]
+    q: Float[Array, "n s"]
+    qd: Float[Array, "n s"]
+    multipliers: Optional[Float[Array, "n m"]]
+    energy: Optional[Float[Array, " n"]]
+    residual: Optional[Float[Array, "n m"]]
+    stats: dict
+    status: STATUS
+    names: tuple = eqx.field(static=True)
+    dense: Optional[DenseMotion] = None
+    event_mask: Any = None
+
+    @property
+    def success(self):
+        """Boolean (array under vmap): did the solve reach its end."""
+        return self.status == STATUS.successful
+
+    def evaluate(self, t):
+        """`(q, qd)` at any time t (s) from the dense output (needs `saveat=SaveAt(dense=True)`)."""
+        if self.dense is None:
+            raise ValueError(
+                "Solution.evaluate needs dense output: pass saveat=diffrax.SaveAt(ts=ts, dense=True) to simulate"
+            )
+        return self.dense.evaluate(t)
+
+    @property
+    def messages(self) -> list:
+        """One message per batch member ("success" or why it failed), for batched solutions."""
+        return [describe(int(c)) for c in np.asarray(status_code(self.status)).ravel()]
+
+    @property
+    def message(self) -> str:
+        """'success', or why the solve failed; for a batch, a count of each outcome."""
+        codes = np.asarray(status_code(self.status))
+        if codes.ndim == 0:
+            return describe(self.status)
+        if np.all(codes == status_code_int(STATUS.successful)):
+            return f"success ({codes.size} of {codes.size})"
+        values, counts = np.unique(codes, return_counts=True)
+        parts = [f"{n} × {describe(int(v))}" for v, n in zip(values, counts)]
+        n_failed = codes.size - int(np.sum(codes == status_code_int(STATUS.successful)))
+        return f"{n_failed} of {codes.size} failed: " + "; ".join(parts)
+
+    def to_dataframe(self):
+        """The motion as a pandas DataFrame (needs pandas)."""
+        return solution_to_dataframe(self)
