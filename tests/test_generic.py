@@ -201,3 +201,37 @@ def test_nonlinear_constraint_by_chetaev_conserves_energy_and_formulations_agree
     # the flag is required: the same constraint without it is refused
     with pytest.raises(ValueError, match="nonlinear_constraints=True"):
         nh.simulate(nh.Mechanism(T, constraints=c, potential=V), None, q0, qd0, ts)
+
+
+def _unit_speed(method_independent):
+    """A point mass in the plane moving at unit speed: c = qd0² + qd1² − 1, nonlinear in the velocities."""
+
+    def T(q, qd, t, p):
+        return 0.5 * (qd[0] ** 2 + qd[1] ** 2)
+
+    def c(q, qd, t, p):
+        return jnp.stack([qd[0] ** 2 + qd[1] ** 2 - 1.0])
+
+    return nh.Mechanism(T, constraints=c, nonlinear_constraints=True, independent=method_independent)
+
+
+def test_nonlinear_constraint_newton_that_cannot_converge_is_refused():
+    """Newton's method for the dependent velocity qd1 of qd1² = 1 − qd0² starts at qd1 = 0, where
+    ∂c/∂qd1 = 0: it cannot converge. The solve is refused with the status that names the cause
+    (before: a fixed number of iterations, unchecked, gave NaN reported as a step limit), eagerly,
+    under jit and under vmap; consistent_velocities refuses too."""
+    mech = _unit_speed((0,))
+    q0, qd0, ts = jnp.zeros(2), jnp.array([0.6, 0.8]), jnp.linspace(0.0, 1.0, 5)
+    with pytest.raises(nh.InvalidInitialState, match="could not be solved"):
+        nh.simulate(mech, None, q0, qd0, ts, method="appell")
+    jitted = jax.jit(lambda x: nh.simulate(mech, None, q0, x, ts, method="appell", throw=False).status)
+    assert jitted(qd0) == nh.STATUS.nonlinear_constraints_unsolved
+    batched = jax.vmap(lambda x: nh.simulate(mech, None, q0, x, ts, method="appell", throw=False).status)(
+        jnp.stack([qd0, qd0])
+    )
+    assert bool(jnp.all(batched == nh.STATUS.nonlinear_constraints_unsolved))
+    # Lagrange needs no such solve: the same motion (straight line at unit speed) is right
+    sol = nh.simulate(mech, None, q0, qd0, ts, method="lagrange", rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(sol.q[-1], qd0 * ts[-1], rtol=1e-8)
+    with pytest.raises(ValueError, match="did not satisfy the constraints"):
+        nh.consistent_velocities(mech, q0, jnp.zeros(2), 0.0, None)  # ∂c/∂qd = 0 at qd = 0

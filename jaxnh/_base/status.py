@@ -75,6 +75,15 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "independent=None (the default), which chooses and re-chooses the partition during the "
         "run, or use method='lagrange' (which accepts redundant constraints)."
     )
+    nonlinear_constraints_unsolved = (
+        "The dependent velocities could not be solved from the constraints nonlinear in the "
+        "velocities: Newton's method, started from zero, did not bring |c| to √eps of its scale "
+        "(method='appell' and 'substituted', `linearize`, `consistent_velocities`). Write the "
+        "constraints so that they can be solved for the dependent velocities near zero (linear "
+        "in them where possible: qd2 − sqrt(qd0² + qd1²) rather than qd0² + qd1² − qd2²), fix "
+        "`independent=` to velocities they can be solved for, or use method='lagrange', which "
+        "integrates all velocities and needs no such solve."
+    )
     mass_matrix_became_singular = (
         "The solve stalled at a singular mass matrix: ∂²T/∂qd² at the last state reached is no "
         "longer positive definite, or an inertia on its diagonal has fallen to ~0 (below √eps of "
@@ -93,6 +102,19 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The values may look fine but derivatives through such a solve are unreliable. Use an "
         "implicit solver, e.g. solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, "
         "atol=atol))."
+    )
+    # --- friction-held contacts (jaxnh._solve.friction) ---
+    friction_values_invalid = (
+        "A friction contact's values at the initial state are not physical: a normal force N < 0, "
+        "μk < 0 or μs < μk (or one of them is not finite). Check the contact's normal_force, "
+        "mu_static and mu_kinetic and the parameters they read."
+    )
+    friction_transitions_exceeded = (
+        "The friction contacts changed between sticking and slipping more often than "
+        "max_transitions allows (Zeno behaviour, or chattering at a contact held at the edge of its "
+        "friction cone); the solve stopped there. sol.contacts.stopped_at and "
+        "sol.contacts.stopped_contact give the time and the contact. Raise max_transitions, or "
+        "check the contact: a normal force near 0, or μs = μk with a force that hovers at μs N."
     )
 
 
@@ -118,6 +140,7 @@ class InvalidInitialState(SimulationError, ValueError):
 
 
 INPUT_FAILURES = (
+    "nonlinear_constraints_unsolved",
     "non_finite_input",
     "bad_report_times",
     "mass_matrix_not_positive_definite",
@@ -126,6 +149,7 @@ INPUT_FAILURES = (
     "constraints_not_finite",
     "constraints_nonlinear",
     "constraints_nearly_dependent",
+    "friction_values_invalid",
 )
 
 

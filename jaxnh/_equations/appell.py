@@ -19,7 +19,9 @@ Which velocities are independent (the partition, `jaxnh._equations.split`):
 * `Appell(independent=(0,))` fixes it; the state is (q, v). A run in which the
   dependent block becomes singular fails with `STATUS.singular_split`.
 * `Appell()` (the default) chooses it inside the compiled program from the
-  constraint matrix at the initial state (per batch member under `vmap`) and
+  constraint matrix, its columns scaled by the mass matrix
+  (`split.mass_scaled_matrix`: a choice that does not depend on the units of
+  the coordinates), at the initial state (per batch member under `vmap`) and
   re-chooses it before any step at which the dependent block has become
   ill-conditioned (its volume below `SWITCH_BELOW` of the best block's);
   a step during which the block's determinant changes sign is rejected and
@@ -155,7 +157,14 @@ class Appell(Formulation):
             ratio, _, _ = partition_quality(self.bound_mech, q, qd, t, params, self.partition(None), self.s - self.m)
             ok = ratio > tiny
         # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
-        return ok, STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
+        status = STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
+        if self.bound_mech.nonlinear_constraints:  # the dependent velocities must be solvable at the start
+            part = self._state_partition(q, qd, t, params)
+            solved = self.split.velocities(q, self.split.independent_of(qd, part), t, params, part)
+            unsolved = ok & ~jnp.all(jnp.isfinite(solved))
+            status = STATUS.where(unsolved, STATUS.nonlinear_constraints_unsolved, status)
+            ok = ok & ~unsolved
+        return ok, status
 
 
 class _Partitioning(StepMaps):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from jaxnh._base.linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
@@ -14,10 +15,14 @@ from jaxnh._model.mechanism import Mechanism
 __all__ = ["consistent_velocities", "project_velocities"]
 
 
-def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3):
+def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
     """The velocities nearest to `qd` in the kinetic-energy metric that satisfy the
     constraints (no argument checks: the building block of `consistent_velocities`
-    and of the "projection" stabilisation)."""
+    and of the "projection" stabilisation).
+
+    For constraints nonlinear in the velocities the Gauss–Newton iteration must bring
+    |c| to √eps of the constraint's scale `|A| |qd| + |c(q, 0, t)|` in every row;
+    otherwise the result is NaN, never velocities that violate the constraints."""
     if mech.n_constraints(q, qd, t, params) == 0:
         return qd
     M, _ = mass_and_velocity_terms(mech, q, qd, t, params)
@@ -28,16 +33,25 @@ def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3):
         W = solve_lower(L, A.T)
         mu = solve_psd_min_norm(mm(W.T, W), c)
         qd = qd - solve_upper_t(L, mm(W, mu))
+    if mech.nonlinear_constraints:
+        A, _ = constraint_terms(mech, q, qd, t, params)
+        c = jax.lax.stop_gradient(mech.constraint(q, qd, t, params))
+        scale = jnp.abs(A) @ jnp.abs(qd) + jnp.abs(mech.constraint(q, jnp.zeros_like(qd), t, params))
+        scale = jax.lax.stop_gradient(scale) + jnp.finfo(qd.dtype).tiny
+        ok = jnp.all(jnp.abs(c) <= jnp.sqrt(jnp.finfo(qd.dtype).eps) * scale)
+        qd = jnp.where(ok, qd, jnp.nan)
     return qd
 
 
-def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3):
+def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
     """The velocities nearest to `qd` that satisfy the constraints.
 
     "Nearest" is in the kinetic-energy metric: the correction `δ` minimises
     `½ δᵀ M δ` subject to `c(q, qd + δ, t) = 0`, i.e. it is the velocity jump
     an impulsive constraint force would cause. Linear constraints are met in
-    one step; nonlinear ones by `iterations` Gauss–Newton steps. Runs compiled
+    one step; nonlinear ones by `iterations` Gauss–Newton steps, which must
+    converge (|c| ≤ √eps of its scale): eagerly a `ValueError` says when they do
+    not, under `jit`/`vmap`/`grad` the result is NaN. Runs compiled
     (once per mechanism and shapes); works under `jit`, `vmap` and `grad`.
 
     Arguments:
@@ -56,7 +70,15 @@ def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 3
     params = as_data(params, q)
     mech.check_shapes(q, qd, t, params)
     mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))  # concrete input only
-    return _project_jit(mech, q, qd, t, params, iterations)
+    out = _project_jit(mech, q, qd, t, params, iterations)
+    if mech.nonlinear_constraints and not isinstance(out, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(out))):
+        raise ValueError(
+            f"consistent_velocities: {iterations} Gauss–Newton steps from qd did not satisfy the constraints "
+            "nonlinear in the velocities (|c| above √eps of its scale). Start from velocities closer to the "
+            "constraint, pass more `iterations`, or write the constraints so that they are closer to linear "
+            "in the velocities."
+        )
+    return out
 
 
 @eqx.filter_jit

@@ -17,12 +17,28 @@ It is either
   state, per batch member under `vmap`, and changed during a run.
 
 The choice (`best_partition`) is generalized coordinate partitioning
-(Wehage & Haug, J. Mech. Des. 104 (1982) 247–255): with the rows of
-A = ∂c/∂qd scaled to unit length, column-pivoted Gram–Schmidt picks the m
-dependent columns greedily by largest remaining norm, which approximately
-maximises the volume |det A_D| — the best-conditioned dependent block.
-`partition_quality` compares the volume of the block in use with that of the
-best one: a ratio of 1 is the best choice, 0 a singular block.
+(Wehage & Haug, J. Mech. Des. 104 (1982) 247–255) in the kinetic-energy
+metric: with the columns of A = ∂c/∂qd divided by √M_jj (M the mass matrix,
+`mass_scaled_matrix`) and the rows then scaled to unit length,
+column-pivoted Gram–Schmidt picks the m dependent columns greedily by largest
+remaining norm, which approximately maximises the volume |det A_D| — the
+best-conditioned dependent block. `partition_quality` compares the volume of
+the block in use with that of the best one: a ratio of 1 is the best choice,
+0 a singular block.
+
+Why the mass scaling: the dependent velocities are not integrated, they are
+rebuilt from (q, v) at every stage, so they carry the error of everything
+they are rebuilt from, and the step-size control, which sees (q, v) only,
+never sees it. On the raw A the choice compared columns in the units of
+their velocities, so it changed with the units of the coordinates. A ball of
+radius r on a turntable, coordinates (x, y, quaternion): the column of ẋ (1)
+beat the quaternion rates' (≈ 2r = 0.2 for r = 0.1 m), so the centre's
+velocity was rebuilt from the quaternion and its rates, ẋ = r ω_y(e, ė) − Ω y,
+and carried |ω| × the quaternion's orientation error: 1.3e-6 m after 50 s at
+rtol 1e-8 against 2.2e-14 m with ẋ, ẏ independent (the partition chosen on
+A M^-1/2, or on the raw A when r = 1 m): re-choosing the partition (237
+times in that run) costs nothing, the choice does
+(benchmarks/mechanisms/ball.py, ball_wp.py).
 """
 
 from __future__ import annotations
@@ -39,12 +55,15 @@ from jaxnh._model.mechanism import check_independent, Mechanism
 
 NEWTON_ITERATIONS = 8  # for constraints nonlinear in qd; linear ones need one
 
-SWITCH_BELOW = 0.25
+SWITCH_BELOW = 0.5
 """A run re-chooses the partition when the dependent block's volume falls below
 this fraction of the best available block's. The error of the dependent
-velocities grows like the inverse of that volume, so the block in use is never
-more than 4× worse conditioned than the best one; the switch lands on a block
-with ratio 1, so the band [0.25, 1] keeps the choice from chattering."""
+velocities grows like the inverse of that volume, and so do the derivatives of
+the reduced vector field near a singular block, which shrink the steps: at
+0.25 the steps before every switch were cut by up to 2.5× and many were
+rejected (knife edge, rtol 1e-6: 214 steps, 64 rejected; 168 at 0.5). The
+switch lands on a block with ratio 1, so the band [0.5, 1] keeps the choice
+from chattering; a switch maps the state exactly."""
 
 Partition = Union[tuple, jax.Array]
 
@@ -54,6 +73,28 @@ def constraint_matrix(mech: Mechanism, q, qd, t, params):
     return jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd)
 
 
+def mass_scaled_matrix(mech: Mechanism, q, qd, t, params, A=None):
+    """A = ∂c/∂qd (m, s) with column j divided by √M_jj (M = ∂²T/∂qd², the mass matrix).
+
+    The partition is chosen on this matrix, not on A: a column of A is in the
+    units of its velocity (∂c/∂ẋ per m/s, ∂c/∂φ̇ per rad/s, a quaternion rate per
+    1/s), so comparing columns of A compares numbers whose ratio changes with
+    the units of the coordinates (metres against millimetres, or the radius of a
+    ball against its quaternion). Divided by √M_jj every column is per √(kinetic
+    energy), and the choice no longer depends on how any coordinate is scaled:
+    heavy velocities (large M_jj) are kept independent and light ones, which can
+    follow from them without amplifying their error in the kinetic-energy
+    norm, become dependent. `A`: the constraint matrix at the state, when the
+    caller has it already.
+    """
+    A = constraint_matrix(mech, q, qd, t, params) if A is None else A
+    if A.shape[0] == 0:
+        return A
+    d = jnp.diagonal(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
+    d = jnp.where(d > 0, d, 1.0)  # (a mass matrix that is not positive definite is reported by the checks)
+    return A / jnp.sqrt(d).astype(A.dtype)[None, :]
+
+
 def unit_rows(A):
     """A with each row scaled to unit Euclidean norm (rows of zeros stay zero)."""
     n = jnp.linalg.norm(A, axis=1, keepdims=True)
@@ -61,7 +102,7 @@ def unit_rows(A):
 
 
 def best_dependent(A) -> tuple[jax.Array, jax.Array]:
-    """Greedy column-pivoted Gram–Schmidt on the row-normalised A (m, s).
+    """Greedy column-pivoted Gram–Schmidt on the row-normalised A (m, s) (mass-scaled by the callers).
 
     Returns the m dependent column indices (int32, in pivot order) and the
     volume they span (the product of the pivots: |det| of the chosen block of
@@ -96,7 +137,7 @@ def best_partition(mech: Mechanism, q, qd, t, params, s: int, m: int):
     """The best-conditioned partition at a state, as data: (perm (s,) int32, volume)."""
     if m == 0:
         return jnp.arange(s, dtype=jnp.int32), jnp.ones((), q.dtype)
-    dep, vol = best_dependent(constraint_matrix(mech, q, qd, t, params))
+    dep, vol = best_dependent(mass_scaled_matrix(mech, q, qd, t, params))
     return partition_from_dependent(dep, s), vol
 
 
@@ -121,11 +162,12 @@ def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int
     """(|det A_D| / best volume, signed det A_D, best perm): how good the block in use is.
 
     The ratio is 1 for the best block greedy pivoting finds and 0 for a
-    singular block (both on the row-normalised A). `A`: the constraint
-    matrix ∂c/∂qd at the state, when the caller has it already.
+    singular block (both on the row-normalised, mass-scaled A of
+    `mass_scaled_matrix`). `A`: the constraint matrix ∂c/∂qd at the state,
+    when the caller has it already.
     """
     s = q.shape[0]
-    A = constraint_matrix(mech, q, qd, t, params) if A is None else A
+    A = mass_scaled_matrix(mech, q, qd, t, params, A)
     if A.shape[0] == 0:
         one = jnp.ones((), q.dtype)
         return one, one, jnp.arange(s, dtype=jnp.int32)
@@ -185,6 +227,21 @@ def place(top, bottom, part: Partition):
     return jnp.tensordot(_one_hot(part, s, xp.dtype).T, xp, axes=1)
 
 
+def _converged(c_dep, x, jacobian):
+    """x where Newton's method has converged (|c| ≤ √eps of the constraint's scale
+    |∂c/∂x| |x| + |c(0)|, in every row), else NaN: a velocity that does not satisfy the
+    constraints is never returned (a solve reports `STATUS.nonlinear_constraints_unsolved`).
+
+    √eps: the iteration converges quadratically, so a converged x leaves a residual at the
+    rounding level (a few eps of the scale), while a diverging or stalled one leaves a
+    residual of the order of the scale itself."""
+    value = c_dep(x)
+    scale = jnp.sum(jnp.abs(jax.lax.stop_gradient(jacobian) * x), axis=1) + jnp.abs(c_dep(jnp.zeros_like(x)))
+    scale = jax.lax.stop_gradient(scale) + jnp.finfo(x.dtype).tiny
+    ok = jnp.all(jnp.abs(jax.lax.stop_gradient(value)) <= jnp.sqrt(jnp.finfo(x.dtype).eps) * scale)
+    return jnp.where(ok, x, jnp.nan)
+
+
 class VelocitySplit(eqx.Module):
     """Map from independent velocities v to all velocities qd, for one mechanism.
 
@@ -219,7 +276,7 @@ class VelocitySplit(eqx.Module):
         for _ in range(NEWTON_ITERATIONS):
             value, jacobian = value_and_jacfwd(c_dep, x)
             x = x - solve_square(jacobian, value)
-        return place(v, x, part)
+        return place(v, _converged(c_dep, x, jacobian), part)
 
     def velocities_and_rates(self, q, v, t, params, part: Partition):
         """qd (s,), B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""

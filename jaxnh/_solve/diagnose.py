@@ -97,6 +97,12 @@ def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
         collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
         pd = pd & ~collapsed
     status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
+    if isinstance(form, Appell) and form.m and form.bound_mech.nonlinear_constraints:
+        # the dependent velocities of constraints nonlinear in them could not be solved (NaN from
+        # jaxnh._equations.split: Newton's method did not converge) where the solve stopped
+        unsolved = ~jnp.all(jnp.isfinite(form.unpack(y, t, params)[1])) & jnp.all(jnp.isfinite(y[0]))
+        status = STATUS.where(stalled & finite & unsolved, STATUS.nonlinear_constraints_unsolved, status)
+        stalled = stalled & ~unsolved
     if isinstance(form, Appell) and form.m:
         ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
         status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)

@@ -297,7 +297,9 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
         return jax.flatten_util.ravel_pytree((fy, jax.vmap(lin)(S, E_)))[0].astype(z.dtype)
 
     mask = _flat_mask(error_mask, y0).astype(dtype)
-    mask_S = jnp.tile(mask, P)
+    # S travels as ravel_pytree of its leaves, each (P, *leaf.shape): leaf by leaf, column-major
+    # within a leaf, so each leaf's weight is repeated over its P columns (not the mask of y tiled P times)
+    mask_S = _flat_mask(error_mask, S0).astype(dtype)
 
     def norm(e):
         ey = _masked_rms(e[:ny], mask)
