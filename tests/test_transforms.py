@@ -333,3 +333,25 @@ def test_holonomic_constraint_in_mechanism():
     np.testing.assert_allclose(a.q[-1], q0, atol=2 * th0 * th0**2)
     g = jax.vmap(lambda q: mech.holonomic_residual(q, 0.0, {}))(a.q)
     assert float(jnp.max(jnp.abs(g))) < 1e-8
+
+
+def test_holonomic_q0_off_the_constraint_is_refused():
+    """A bead on a hoop of radius 1 m (g = x² + y² − 1) started 0.1 m off it (g(q0) = 0.21 of a
+    scale 2·1.1² + 1 = 3.4): refused with its own status, eagerly, under jit and under vmap;
+    a q0 on the hoop to rounding (g ≈ 1e-16) is accepted."""
+    mech = nh.Mechanism(
+        lambda q, qd, t, p: 0.5 * jnp.sum(qd**2),
+        holonomic=lambda q, t, p: jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0]),
+    )
+    ts = jnp.linspace(0.0, 1.0, 3)
+    off, on = jnp.array([1.1, 0.0]), jnp.array([jnp.cos(0.3), jnp.sin(0.3)])
+    qd = jnp.array([0.0, 1.0])
+    for method in ("appell", "lagrange"):
+        with pytest.raises(nh.InvalidInitialState, match="holonomic constraints"):
+            nh.simulate(mech, {}, off, qd, ts, method)
+        status = jax.jit(lambda q: nh.simulate(mech, {}, q, qd, ts, method, throw=False).status)
+        assert status(off) == nh.STATUS.holonomic_violated
+        both = jax.vmap(lambda q: nh.simulate(mech, {}, q, qd, ts, method, throw=False).status)(jnp.stack([off, on]))
+        assert bool((both == nh.STATUS.holonomic_violated)[0])
+        qd_on = jnp.array([-jnp.sin(0.3), jnp.cos(0.3)])
+        assert bool(nh.simulate(mech, {}, on, qd_on, ts, method).success)

@@ -84,6 +84,12 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "`independent=` to velocities they can be solved for, or use method='lagrange', which "
         "integrates all velocities and needs no such solve."
     )
+    holonomic_violated = (
+        "The initial coordinates q0 do not satisfy the holonomic constraints g(q0, t0) = 0 (to √eps of "
+        "their scale). The holonomic constraints are imposed on the velocities, so a q0 off g = 0 "
+        "stays off it. Pass a q0 on the constraints: solve g(q0) = 0 for the dependent coordinates "
+        "(`mech.holonomic_residual(q0, t0, params)` tells how far off it is)."
+    )
     mass_matrix_became_singular = (
         "The solve stalled at a singular mass matrix: ∂²T/∂qd² at the last state reached is no "
         "longer positive definite, or an inertia on its diagonal has fallen to ~0 (below √eps of "
@@ -140,6 +146,7 @@ class InvalidInitialState(SimulationError, ValueError):
 
 
 INPUT_FAILURES = (
+    "holonomic_violated",
     "nonlinear_constraints_unsolved",
     "non_finite_input",
     "bad_report_times",

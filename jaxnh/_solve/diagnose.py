@@ -27,11 +27,37 @@ from jaxnh._equations.split import partition_quality
 from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_ok, nearly_dependent
 
 
-__all__ = ["initial_checks", "diagnose_stall", "spectral_radius", "STIFF_ABOVE", "STALLED_SPLIT_BELOW"]
+__all__ = [
+    "holonomic_consistent",
+    "initial_checks",
+    "diagnose_stall",
+    "spectral_radius",
+    "STIFF_ABOVE",
+    "STALLED_SPLIT_BELOW",
+]
 
 STALLED_SPLIT_BELOW = 1e-4
 """A failed solve whose last state has a dependent block this much worse conditioned than
 the best available one is reported as a singular split."""
+
+
+def holonomic_consistent(mech, q, t, params):
+    """Whether q satisfies the holonomic constraints g(q, t) = 0 to √eps of their scale.
+
+    The scale of row j is `|∂g_j/∂q| |q| + |∂g_j/∂t| + |g_j(0, t)|`, the size of the terms g is made
+    of (a hoop of radius 1 m: g = x² + y² − 1 has the scale 2 r² + 1), so the test does not
+    depend on the units of the coordinates; a q0 a rounding error off g passes, a bead 0.1 m
+    off a 1 m hoop (g = 0.21 of a scale 3.4) does not.
+    """
+    q = jax.lax.stop_gradient(q)
+
+    def g(x, t_):
+        return mech.holonomic_residual(x, t_, params)
+
+    value, (dq, dt) = g(q, t), jax.jacfwd(g, argnums=(0, 1))(q, jnp.asarray(t, q.dtype))
+    scale = jnp.abs(dq) @ jnp.abs(q) + jnp.abs(dt) + jnp.abs(g(jnp.zeros_like(q), t))
+    tol = jnp.sqrt(jnp.finfo(q.dtype).eps) * (scale + jnp.finfo(q.dtype).tiny)
+    return jnp.all(jnp.isfinite(value)) & jnp.all(jnp.abs(value) <= tol)
 
 
 def initial_checks(form, q, qd, t, params):
@@ -41,6 +67,10 @@ def initial_checks(form, q, qd, t, params):
     # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
+    if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
+        on = holonomic_consistent(mech, q, t, params)
+        status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)
+        ok = ok & on
     if form.m:
 
         def c(v):
