@@ -361,7 +361,8 @@ def variator32(ratio, dJ1=0, dJ2=0, dsin=0, dperiod=0):
     """The float32 variator without torques, J1 = ratio · J2, its parameters moved by the given
     numbers of ulps. U21(0) and qd0 stay exact: see test_float32_linear_constraint_check_allows_rounding."""
     u = V.default_params().U21
-    U21 = Fourier(1.0, cos=[0.0], sin=[ulps(u.sin[0], dsin)], period=ulps(u.period, dperiod))
+    assert isinstance(u, Fourier)
+    U21 = Fourier(1.0, cos=[0.0], sin=[ulps(u.sin[0], dsin)], period=float(ulps(u.period, dperiod)))
     return to32(V.VariatorParams(J1=ulps(0.05 * ratio, dJ1), J2=ulps(0.05, dJ2), U21=U21, M1=0.0, M2=0.0))
 
 

@@ -9,6 +9,7 @@ import json
 import re
 import subprocess
 import sys
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -458,7 +459,7 @@ def test_one_levenberg_marquardt_driver_compiled_and_on_the_host(tmp_path):
 
     (tmp_path / "d.csv").write_text(cli_model.record_text(n=60))
     rec = read_csv(tmp_path / "d.csv", coordinates=("a", "b"), inputs=("F",))
-    kw = dict(free=("J1", "c"), positive=("J1", "c"), noise=2e-4, rtol=1e-8)
+    kw: dict[str, Any] = dict(free=("J1", "c"), positive=("J1", "c"), noise=2e-4, rtol=1e-8)
     for shooting in (2, 1):
         problem, theta0, obs, _ = prepare(cli_model.MECH, cli_model.params(rec), rec, shooting=shooting, **kw)
         n = jax.eval_shape(lambda: problem.raw_residuals(theta0, obs)).shape[0]

@@ -290,6 +290,25 @@ def test_event_time_is_a_root_of_the_dense_output():
     assert int(jnp.sum(jnp.isfinite(sol.ts))) == int(jnp.sum(TS <= t_event)) + 1
 
 
+@pytest.mark.slow
+def test_event_without_root_finder_gets_one_and_its_time_is_differentiable():
+    """An Event given without a root finder (before: located at the end of the crossing step, with
+    a time whose gradient was exactly 0) is located by Newton's method on the interpolant: the
+    event time t_e solves phi1(t_e) = target, so d t_e / d target = 1 / phi1'(t_e) (the implicit
+    function theorem), which the gradient through the solve must give. Tolerance: the solve's rtol
+    1e-10 times the few steps that carry an error into phi1'(t_e), with a margin of 100."""
+
+    def event_time(target):
+        event = diffrax.Event(lambda t, y, p, **kw: y[0][0] - target)
+        sol = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS, event=event, rtol=1e-10, atol=1e-12,
+                          saveat=diffrax.SaveAt(t1=True))  # fmt: skip
+        return sol.ts[-1], sol.qd[-1][0]
+
+    (t_e, w_e), (dt_e, _) = jax.jvp(event_time, (3.0,), (1.0,))
+    assert 0.0 < float(t_e) < float(TS[-1])
+    np.testing.assert_allclose(float(dt_e), 1.0 / float(w_e), rtol=1e-8)
+
+
 def test_ode_with_diffeqsolve_equals_simulate():
     o = nh.ode(MECH, P, jnp.zeros(2), QD0, 0.0)
     sol = diffrax.diffeqsolve(

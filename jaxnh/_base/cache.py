@@ -155,9 +155,10 @@ def _prepare(path: str) -> str | None:
 
 
 def _user_configured() -> bool:
-    if jax.config.jax_compilation_cache_dir:  # set in code, or JAX_COMPILATION_CACHE_DIR
-        return True
-    return not jax.config.jax_enable_compilation_cache
+    # (jax.config's flags are attributes it creates at run time, which type checkers do not see)
+    if jax.config.jax_compilation_cache_dir:  # pyright: ignore[reportAttributeAccessIssue]
+        return True  # set in code, or JAX_COMPILATION_CACHE_DIR
+    return not jax.config.jax_enable_compilation_cache  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def enable_compilation_cache(environ=None) -> str | None:

@@ -15,6 +15,7 @@ from typing import Callable, TypeVar
 
 import equinox as eqx
 import jax
+import jax.core
 
 
 __all__ = ["ONE_SHOT", "one_shot_jit"]

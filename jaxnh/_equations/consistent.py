@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 
 from jaxnh._base.linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
