@@ -11,6 +11,7 @@ compiles, the others reuse it.
 import json
 import os
 import re
+import subprocess
 import sys
 
 import numpy as np
@@ -352,3 +353,108 @@ def test_no_torque_is_not_identifiable_exit_1(tmp_path, capsys, fitted):
     assert code == 1, (out, err)
     assert rep["status"] in ("not_identifiable", "not_converged") and not rep["ok"]
     assert "exit status 1" in out
+
+
+# --- what a user meets first: --version, exit statuses in --help, figures optional ------------------------------
+
+# runs `jaxnh ARGS` in a fresh process in which matplotlib cannot be imported, as if it were not installed
+WITHOUT_MATPLOTLIB = (
+    "import sys\nsys.modules['matplotlib'] = None\nfrom jaxnh.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+)
+
+
+def run_without_matplotlib(args, cwd, timeout):
+    env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+    return subprocess.run(
+        [sys.executable, "-c", WITHOUT_MATPLOTLIB, *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def test_version(capsys):
+    from importlib import metadata
+
+    import jaxnh
+
+    code, out, err = run(["--version"], capsys)
+    assert code == 0 and err == ""
+    assert out == f"jaxnh {jaxnh.__version__}\n"
+    assert jaxnh.__version__ == metadata.version("jaxnh")  # pyproject reads the version from jaxnh/__init__.py
+
+
+@pytest.mark.parametrize("command", [[], ["demo"], ["fit"], ["design"]])
+def test_every_help_documents_the_exit_statuses(capsys, command):
+    code, out, err = run([*command, "--help"], capsys)
+    assert code == 0, err
+    text = out[out.index("exit status") :]
+    for status in ("0", "1", "2", "130"):
+        assert re.search(rf"(^|\s){status}\s", text), (command, status, text)
+    assert "matplotlib" in text  # what happens without it
+
+
+def test_plotting_note_without_matplotlib(monkeypatch, capsys):
+    from jaxnh._cli.common import plotting_available
+
+    assert plotting_available("fit", "no figures")
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as if not installed
+    monkeypatch.delitem(sys.modules, "matplotlib.pyplot", raising=False)
+    assert not plotting_available("fit", "no figures are drawn")
+    err = capsys.readouterr().err
+    assert err.startswith("jaxnh fit: matplotlib is not installed: no figures are drawn (pip install matplotlib")
+    assert "jaxnh[plot]" in err and "Traceback" not in err
+
+
+def test_design_leaves_out_only_the_figure_without_matplotlib(tmp_path, monkeypatch, capsys):
+    """The set-up before the (long) design itself: the figure is dropped from the outputs, with a note."""
+    import jaxnh._cli.design as design
+
+    seen = {}
+
+    def fake_run(args, files):
+        seen.update(files)
+        return 0
+
+    monkeypatch.setattr(design, "_run", fake_run)
+    monkeypatch.setenv("MPLBACKEND", "Agg")  # main() sets it when matplotlib is not imported: restored after
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.delitem(sys.modules, "matplotlib.pyplot", raising=False)
+    code, out, err = run(["design", "--out", str(tmp_path / "d")], capsys)
+    assert code == 0
+    assert sorted(os.path.basename(f) for f in seen.values()) == ["design.json", "designed_input.csv"]
+    assert "jaxnh design: matplotlib is not installed: design.png is not drawn" in err
+
+
+def test_fit_without_matplotlib_writes_json_and_exits_0(tmp_path):
+    data = tmp_path / "d.csv"
+    data.write_text(cli_model.record_text())
+    proc = run_without_matplotlib(
+        ["fit", str(data), "--model", MODEL, "--json", "fit.json", "--out", "figs", "--quiet"], tmp_path, 600
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "jaxnh fit: matplotlib is not installed: no figures are drawn into --out figs" in proc.stderr
+    assert json.loads((tmp_path / "fit.json").read_text())["status"] == "fitted"
+    assert sorted(os.listdir(tmp_path)) == ["d.csv", "fit.json"]  # no figures folder, no temporary files
+
+
+@pytest.mark.slow
+def test_design_without_matplotlib_writes_csv_and_json(tmp_path):
+    """The issue's case: the design ran, wrote its CSV and JSON, then died importing matplotlib (exit 1).
+    Smallest settings: the embedded record's set-up is fixed, so most of the time is compilation
+    (3–5 minutes on 2 busy cores with an empty compilation cache, half a minute with a warm one)."""
+    proc = run_without_matplotlib(
+        ["design", "--out", "d", "--starts", "1", "--steps", "1", "--harmonics", "1"], tmp_path, 1800
+    )
+    assert "Traceback" not in proc.stderr, proc.stderr
+    rep = json.loads((tmp_path / "d" / "design.json").read_text())
+    assert proc.returncode == (0 if rep["check"]["feasible"] else 1), proc.stdout + proc.stderr
+    assert sorted(os.listdir(tmp_path / "d")) == ["design.json", "designed_input.csv"]
+    assert "jaxnh design: matplotlib is not installed: design.png is not drawn" in proc.stderr
+    # progress before the long compilations, on stderr (stdout keeps the results)
+    assert "jaxnh design: compiling the experiment's simulation and its sensitivities (a first run" in proc.stderr
+    assert "jaxnh design: compiling the design criterion and its gradient" in proc.stderr
+    assert "compiling" not in proc.stdout

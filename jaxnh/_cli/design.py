@@ -23,8 +23,22 @@ DIR (default `jaxnh_design/`):
 * `design.png` — the inputs, the contact force and the predicted 95 %
   half-width of U21(t) for both.
 
-Exit status: 0 when a design satisfying every limit was found, 1 when none
-was (the best attempt is still written, marked infeasible), 2 on bad input.
+Figures need matplotlib (the `plot` extra): without it the CSV and
+the JSON are written, a note on stderr says that design.png is not drawn, and
+the exit status is the design's.
+
+The first run compiles the experiment's simulation, its sensitivities and the
+design criterion's gradient, which takes minutes; progress lines on stderr
+say so before each long compilation (`--quiet` leaves them out). The compiled
+programs are kept in JAX's persistent compilation cache (`jaxnh._base.cache`),
+so a later run with the same settings loads them instead.
+
+Exit status:
+    0    a design satisfying every limit was found (files written);
+    1    none was: the best attempt is still written, marked infeasible (or the
+         embedded experiment itself could not be simulated: nothing written);
+    2    bad input or arguments (a message on stderr; nothing written);
+    130  interrupted (Ctrl-C): each file is whole or absent.
 """
 
 from __future__ import annotations
@@ -40,6 +54,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnh._base.atomic import atomic_save_figure, atomic_write
+from jaxnh._base.cache import enable_compilation_cache
+from jaxnh._cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    plotting_available,
+    use_agg,
+)
 from jaxnh._model.profiles import Bounded, Fourier, Sampled
 from jaxnh.identify._experiment import design_loss, evaluate_design, Limits, optimal_design, predict
 from jaxnh.identify.data import load_default
@@ -52,6 +75,19 @@ __all__ = ["main", "build_parser"]
 
 OUTPUTS = {"csv": "designed_input.csv", "json": "design.json", "figure": "design.png"}
 
+EPILOG = """\
+exit status:
+  0    a design within every limit was found (files written)
+  1    none was: the best attempt is written, marked infeasible ("feasible": false
+       in design.json); or the embedded experiment could not be simulated (nothing written)
+  2    bad input or arguments (a message says what is wrong; nothing is written)
+  130  interrupted (Ctrl-C; each file is whole or absent)
+without matplotlib, designed_input.csv and design.json are written but not design.png
+(a note on stderr says so); the exit status is the design's.
+the first run compiles for minutes (progress lines on stderr say so; --quiet hides them);
+compiled programs are cached in ~/.cache/jaxnh ($JAXNH_CACHE_DIR; JAXNH_CACHE_DIR=off disables).
+"""
+
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -60,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
         "measuring: minimise the predicted standard error of the named parameters (Fisher "
         "information from forward sensitivities) within the rig's torque, contact-force and "
         "energy limits. Default set-up: the embedded record's.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
         "--out",
@@ -122,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not require J2 and the U21 knots to stay at least as precise as with the record's input",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress lines (notes and errors are still printed)")
     return p
 
 
@@ -167,7 +205,7 @@ def _num(x):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`jaxnh design ...` (argv without "design"); returns the exit status."""
+    """`jaxnh design ...` (argv without "design"); returns the exit status (0, 1, 2 or 130)."""
     parser = build_parser()
     try:
         args = parser.parse_args(sys.argv[1:] if argv is None else argv)
@@ -178,17 +216,36 @@ def main(argv: list[str] | None = None) -> int:
         files = _check_out(args.out)
     except ValueError as e:
         print(f"jaxnh design: {e}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    args.cache = enable_compilation_cache()  # the command line owns its process: compiled programs kept
+    use_agg()
+    if not plotting_available("design", f"{OUTPUTS['figure']} is not drawn"):
+        files.pop("figure")
     try:
         return _run(args, files)
     except ValueError as e:
         print(f"jaxnh design: {e}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("\njaxnh design: interrupted (files are whole or absent)", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _say(args, *msg):
     if not args.quiet:
         print(*msg, flush=True)
+
+
+def _compiling(args, what: str, first: bool = False) -> None:
+    """A progress line on stderr before a long compilation (not with --quiet)."""
+    if args.quiet:
+        return
+    note = ""
+    if first:
+        cache = getattr(args, "cache", None)  # the folder main() turned the compilation cache on in
+        kept = f"; the compiled programs are kept in {cache}, so a later run with the same settings loads them"
+        note = f" (a first run spends minutes compiling{kept if cache else ''})"
+    print(f"jaxnh design: compiling {what}{note}…", file=sys.stderr, flush=True)
 
 
 def _run(args, files) -> int:
@@ -206,12 +263,13 @@ def _run(args, files) -> int:
         f"{record.n} samples over {duration:.3g} s, encoders {truth['counts_per_rev']} counts/rev, "
         f"nominal J1 = {truth['J1']}, J2 = {truth['J2']} kg·m², U21 on {len(truth['U21_knots'])} knots",
     )
+    _compiling(args, "the experiment's simulation and its sensitivities", first=True)
     exp, base_params = variator_experiment(record)
     _say(args, "  baseline (the record's torques): predicting standard errors …")
     base = predict(exp)
     if base.status != 0:
         print("jaxnh design: the baseline experiment cannot be simulated", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     assert base.max_multiplier is not None  # the variator's Appell solve records its multiplier
     lam_max = args.lambda_max or float(np.max(base.max_multiplier))
     P = exp.n_params
@@ -247,8 +305,9 @@ def _run(args, files) -> int:
         + (f", |M2| ≤ {m2_max:.4g} N·m" if "M2" in args.inputs else "")
         + f", |λ| ≤ {lam_max:.4g} N·m"
         + (", J2 and U21 knots no worse than the baseline" if keep else "")
-        + f"; {args.starts} starts × {args.steps} Adam steps (the first call compiles)",
+        + f"; {args.starts} starts × {args.steps} Adam steps",
     )
+    _compiling(args, "the design criterion and its gradient (the longest compilation)")
     res = optimal_design(
         exp,
         start,
@@ -268,6 +327,7 @@ def _run(args, files) -> int:
     m1 = np.asarray(jax.vmap(res.params.M1)(tj))
     m2 = np.asarray(jax.vmap(res.params.M2)(tj))
     sampled = V.VariatorParams(base_params.J1, base_params.J2, base_params.U21, Sampled(t, m1), Sampled(t, m2))
+    _compiling(args, "the check of the design with its torques as written to the CSV")
     des = predict(exp, sampled)
     assert des.max_multiplier is not None
     loss = design_loss(exp, args.criterion, of=args.of, limits=limits)
@@ -360,7 +420,9 @@ def _run(args, files) -> int:
     text = json.dumps(out, indent=1, allow_nan=False)  # whole text first: a failure leaves no file
     with atomic_write(files["json"], "w") as f:
         f.write(text)
-    _figure(files["figure"], exp, base_params, sampled, base, des, ts_band, s_b, s_d, lam_max)
+    if "figure" in files:
+        _compiling(args, f"the simulations drawn in {OUTPUTS['figure']}")
+        _figure(files["figure"], exp, base_params, sampled, base, des, ts_band, s_b, s_d, lam_max)
     _say(args, "")
     _say(args, _table(exp.labels, base, des))
     _say(
@@ -369,8 +431,8 @@ def _run(args, files) -> int:
         f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
         f"{'FEASIBLE' if feasible else 'NOT FEASIBLE: a limit is exceeded'}",
     )
-    _say(args, f"  wrote {files['csv']}, {files['json']}, {files['figure']} ({out['elapsed_s']:.0f} s)")
-    return 0 if feasible else 1
+    _say(args, f"  wrote {', '.join(files.values())} ({out['elapsed_s']:.0f} s)")
+    return EXIT_OK if feasible else EXIT_FAILED
 
 
 def _table(labels, base, des) -> str:
@@ -381,10 +443,7 @@ def _table(labels, base, des) -> str:
 
 
 def _figure(path, exp, base_params, des_params, base, des, ts_band, s_b, s_d, lam_max):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # optional dependency (the plot extra); the backend: main() chose Agg
 
     t = np.asarray(exp.ts)
     tj = jnp.asarray(t)

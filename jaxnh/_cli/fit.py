@@ -23,13 +23,18 @@ Outputs are written whole or not at all (a temporary file in the same
 folder, then renamed). Every number in the JSON is finite or null; a null
 comes with a "status" other than "fitted".
 
+Figures (`--out`) need matplotlib (the `plot` extra). Without it
+the fit runs and its JSON is written; a note on stderr says that no figures
+are drawn, and the exit status is the fit's.
+
 Exit status:
-    0  fitted: converged, every parameter determined, every number finite;
-    1  the fit failed: not converged, a parameter combination not determined
-       by the data, the simulation failed or gave non-finite numbers (the
-       JSON and figures are still written, with "status" saying why);
-    2  bad input: a message on stderr says what is wrong and how to fix it;
-       nothing is written.
+    0    fitted: converged, every parameter determined, every number finite;
+    1    the fit failed: not converged, a parameter combination not determined
+         by the data, the simulation failed or gave non-finite numbers (the
+         JSON and figures are still written, with "status" saying why);
+    2    bad input: a message on stderr says what is wrong and how to fix it;
+         nothing is written;
+    130  interrupted (Ctrl-C): nothing is written.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ import numpy as np
 
 from jaxnh._base.atomic import atomic_save_figure, atomic_write, check_writable_dir, check_writable_file
 from jaxnh._base.dataframe import json_safe
+from jaxnh._cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, plotting_available
 from jaxnh._model.profiles import CubicSpline
 from jaxnh.identify._fit import fit, RATE_WINDOW
 from jaxnh.identify.data import load_default, MAX_SAMPLES, read_csv
@@ -72,11 +78,12 @@ __all__ = [
 MODELS = ("variator",)
 MAX_KNOTS = 200
 MAX_ABS = 1e100  # larger values in a record are refused (their squares overflow)
-EXIT_FITTED, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_FITTED = EXIT_OK
 EXIT_CODES = {
     EXIT_FITTED: "fitted",
     EXIT_FAILED: "the fit failed (results written with a failure status)",
     EXIT_BAD_INPUT: "bad input (nothing written)",
+    EXIT_INTERRUPTED: "interrupted (nothing written)",
 }
 PROGRESS_BYTES = 8 << 20  # show reading progress for files larger than this
 
@@ -84,7 +91,10 @@ EPILOG = """\
 exit status: 0 fitted (converged, all parameters determined, all numbers finite);
              1 the fit failed (not converged, not identifiable, simulation failed or
                non-finite; the JSON and figures are still written, "status" says why);
-             2 bad input (a message says what is wrong; nothing is written).
+             2 bad input (a message says what is wrong; nothing is written);
+             130 interrupted (Ctrl-C; nothing is written).
+without matplotlib, --out gets no figures (a note on stderr says so); the JSON is
+written and the exit status is the fit's.
 
 --model module:function (or path/to/file.py:function) fits your own mechanism: the
 function takes no arguments and returns a jaxnh.identify.spec.FitSpec(mechanism=,
@@ -220,13 +230,6 @@ def check_outputs(json_path, out_dir, data_path=None) -> None:
         why = check_writable_dir(out_dir, "--out")
         if why:
             raise BadInput(why)
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            raise BadInput(
-                "--out: figures need matplotlib (pip install matplotlib, or jaxnh[plot]); "
-                "leave out --out to fit without figures"
-            ) from None
 
 
 def _count_check(n_samples: int, n_channels: int, n_unknowns: int, what: str) -> None:
@@ -395,6 +398,9 @@ def run_fit(args) -> int:
         return _bad(e)
     except OSError as e:
         return _bad(f"{e.filename or args.data}: {e.strerror or e}")
+    figures_dir = args.out
+    if figures_dir is not None and not plotting_available("fit", f"no figures are drawn into --out {figures_dir}"):
+        figures_dir = None
     noise = (
         None
         if args.noise is None
@@ -420,13 +426,13 @@ def run_fit(args) -> int:
         return _failed(e, args, plan)
     except KeyboardInterrupt:
         print("\njaxnh fit: interrupted; nothing written", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except Exception as e:  # the solver or optimiser broke down: the fit failed
         return _failed(e, args, plan)
     truth = None
     try:
         rep = _print_and_write(
-            result, plan.source, args.json, args.out, record, truth, model=args.model, kind=plan.kind
+            result, plan.source, args.json, figures_dir, record, truth, model=args.model, kind=plan.kind
         )
     except OSError as e:
         print(f"jaxnh fit: writing the results failed: {e}", file=sys.stderr)
