@@ -2,19 +2,8 @@
 
 The public names of `jaxnh.identify.design`; see there for the implementation."""
 
-from jaxnh.identify.design import (  # noqa: F401
-    Bounded as Bounded,
-    Chebyshev as Chebyshev,
-    fd_gradient as fd_gradient,
-    multistart as multistart,
-    optimize as optimize,
-)
+from jaxnh.identify import design as _implementation
+from jaxnh.identify.design import *  # noqa: F403 (the public names of one implementation module)
 
 
-__all__ = [
-    "Chebyshev",
-    "Bounded",
-    "optimize",
-    "multistart",
-    "fd_gradient",
-]
+__all__ = _implementation.__all__

@@ -2,29 +2,8 @@
 
 The public names of `jaxnh._model.profiles`; see there for the implementation."""
 
-from jaxnh._model.profiles import (  # noqa: F401
-    Bounded as Bounded,
-    Constant as Constant,
-    CubicSpline as CubicSpline,
-    Fourier as Fourier,
-    PiecewiseLinear as PiecewiseLinear,
-    Positive as Positive,
-    Profile as Profile,
-    Sampled as Sampled,
-    SmoothStep as SmoothStep,
-    trainable as trainable,
-)
+from jaxnh._model import profiles as _implementation
+from jaxnh._model.profiles import *  # noqa: F403 (the public names of one implementation module)
 
 
-__all__ = [
-    "Profile",
-    "Constant",
-    "Fourier",
-    "SmoothStep",
-    "PiecewiseLinear",
-    "CubicSpline",
-    "Sampled",
-    "Positive",
-    "Bounded",
-    "trainable",
-]
+__all__ = _implementation.__all__

@@ -2,13 +2,8 @@
 
 The public names of `jaxnh._solve.rk`; see there for the implementation."""
 
-from jaxnh._solve.rk import (  # noqa: F401
-    DOP853 as DOP853,
-    UnrolledTsit5 as UnrolledTsit5,
-)
+from jaxnh._solve import rk as _implementation
+from jaxnh._solve.rk import *  # noqa: F403 (the public names of one implementation module)
 
 
-__all__ = [
-    "DOP853",
-    "UnrolledTsit5",
-]
+__all__ = _implementation.__all__

@@ -23,6 +23,19 @@ import jax.scipy.linalg as jsl
 from jaxtyping import Array, Float
 
 
+__all__ = [
+    "UNROLL_MAX",
+    "mm",
+    "cholesky",
+    "solve_lower",
+    "solve_upper_t",
+    "solve_spd",
+    "pivot_rtol",
+    "solve_psd_min_norm",
+    "solve_square",
+    "value_and_jacfwd",
+]
+
 UNROLL_MAX = 8
 
 
