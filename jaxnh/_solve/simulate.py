@@ -19,6 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from jaxnh._base.compat import status_code
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
@@ -124,9 +125,20 @@ def field(t, y, args):
     zero, so the solve finishes in a few steps instead of wandering.
     """
     form, params, ok = args
-    # small fields as one graph of scalar operations (fewer kernels; see jaxnh._equations.scalarize)
-    dy = scalarized(form.vector_field)(t, y, params)
+    dy = _vector_field(t, y, form, params)
     return jax.tree_util.tree_map(lambda d, x: jnp.where(ok, d, 0).astype(x.dtype), dy, y)
+
+
+@eqx.filter_jit
+def _vector_field(t, y, form, params):
+    """The formulation's vector field, traced once per structure of its arguments.
+
+    A solve evaluates the field in many places (the solver's stages, its first step, the step
+    maps, forward sensitivities): as a jitted function its trace (and the derivatives JAX takes
+    of it) is made once and reused at every place, instead of tracing the user's energies anew
+    each time. Small fields are flattened to scalar operations (`jaxnh._equations.scalarize`).
+    """
+    return scalarized(form.vector_field)(t, y, params)
 
 
 def _stages_per_step(solver) -> Optional[int]:
@@ -557,9 +569,19 @@ def _run_traced(
     if event is not None:
         # diffrax 0.7.0 (the oldest supported) has no `direction` on its Event; 0.7.2 has
         direction = {"direction": event.direction} if hasattr(event, "direction") else {}
+        # an event without a root finder would end at the end of the step that crossed it, with a
+        # time whose derivative is 0: it gets Newton's method on the solver's interpolant, so its
+        # time is located to the tolerance and differentiable (a boolean condition has no root to
+        # find and keeps diffrax's behaviour)
+        root_finder = event.root_finder
+        if root_finder is None:
+            # Newton converges quadratically on the smooth interpolant: a tolerance of 1e-3 √eps
+            # (1.5e-11 in float64) costs an iteration or two more than a loose one
+            tol = float(np.sqrt(np.finfo(np.dtype(q0.dtype)).eps)) * 1e-3
+            root_finder = optx.Newton(rtol=tol, atol=tol)
         event = diffrax.Event(
             jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
-            root_finder=event.root_finder,
+            root_finder=root_finder,
             **direction,
         )
     adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
