@@ -5,8 +5,9 @@
 # make docs       — build the documentation site into site/ (examples executed; strict: warnings fail)
 # make docs-serve — the same, served with live reload at http://127.0.0.1:8000
 # make lint       — ruff check, ruff format --check, pyright
-# make bench      — regenerate benchmarks/RESULTS.md and figures (20–60 min, by load)
-# make bench-quick — the short suite (a few minutes), written to benchmarks/quick/
+# make bench      — run the benchmark suite, regenerate benchmarks/RESULTS.md and figures (1–1.5 h on 2 cores)
+# make bench-quick — the short suite (about 10 minutes), written to benchmarks/quick/
+# make bench-stale — fail when benchmarks/RESULTS.md was measured on other jaxnh/ sources than today's
 
 PYTHON ?= python3
 VENV := .venv
@@ -14,7 +15,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 MIN_VENV := .venv-min
 
-.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick clean
+.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick bench-stale clean
 
 $(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -63,6 +64,9 @@ bench: $(VENV)/.installed-bench
 
 bench-quick: $(VENV)/.installed-bench
 	JAXNH_BENCH_OUT=benchmarks/quick $(PY) -m benchmarks.run_all --quick
+
+bench-stale: $(STAMP)
+	$(PY) -m benchmarks.run_all --stale
 
 clean:
 	rm -rf $(VENV) $(MIN_VENV) site jaxnh_out .pytest_cache benchmarks/quick

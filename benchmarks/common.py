@@ -7,8 +7,8 @@ the median of the per-round ratios. Wall times are recorded too. The machine
 these run on is shared: wall time there mostly measures waiting for a core,
 CPU time what a call costs on an idle core.
 
-Each benchmark process is pinned to one core with XLA's thread pools off
-before JAX starts (XLA's idle pool threads spin and inflate CPU times; these
+Each study pins itself to one core with XLA's thread pools off (`pin`, before
+JAX starts) (XLA's idle pool threads spin and inflate CPU times; these
 solves are too small to gain from threads); `JAXNH_BENCH_XLA_THREADS=default`
 keeps XLA's own setting. Fresh processes (`fresh`) get the user's defaults
 back: every core, the original XLA flags, empty cache folders.
@@ -31,10 +31,17 @@ import time
 
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
-_ENV0 = dict(os.environ)  # before the pinning below: what fresh processes get back
+_ENV0 = dict(os.environ)  # before `pin`: what fresh processes get back
 _CPUS0 = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
 PINNED_CPU = None
-if os.environ.get("JAXNH_BENCH_XLA_THREADS") != "default":
+
+
+def pin():
+    """Pin this process to one core and turn XLA's thread pools off; call before JAX is imported.
+    (Importing this module changes nothing: `stale` can be called from anywhere.)"""
+    global PINNED_CPU
+    if os.environ.get("JAXNH_BENCH_XLA_THREADS") == "default":
+        return
     if "intra_op_parallelism" not in os.environ.get("XLA_FLAGS", ""):
         flags = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flags).strip()
@@ -42,7 +49,8 @@ if os.environ.get("JAXNH_BENCH_XLA_THREADS") != "default":
         PINNED_CPU = _CPUS0[os.getpid() % len(_CPUS0)]
         os.sched_setaffinity(0, {PINNED_CPU})
 
-import numpy as np  # noqa: E402
+
+import numpy as np
 
 
 # Where JSON results, figures and RESULTS.md go: benchmarks/ itself, or $JAXNH_BENCH_OUT
@@ -125,17 +133,40 @@ def fresh(code: str, env: dict | None = None, timeout: float = 1800) -> dict:
     e.setdefault("JAXNH_CACHE_DIR", cache_dirs()[0])  # empty: no program compiled earlier can be found
 
     unpin = f"__import__('os').sched_setaffinity(0, {set(_CPUS0)!r})\n" if _CPUS0 else ""
-    proc = subprocess.run(
-        [sys.executable, "-c", unpin + FRESH_HEAD + code + FRESH_TAIL],
-        capture_output=True,
-        text=True,
-        env=e,
-        cwd=str(ROOT),
-        timeout=timeout,
-    )
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", unpin + FRESH_HEAD + code + FRESH_TAIL], stdout=out, stderr=err, env=e, cwd=str(ROOT)
+        )
+        start, peak, why = time.perf_counter(), 0, None
+        while proc.poll() is None:  # a guard: some programs need more memory to compile than the machine has
+            peak = max(peak, _rss_gb(proc.pid))
+            if peak > MAX_RSS_GB or time.perf_counter() - start > timeout:
+                proc.kill()
+                why = f"more than {MAX_RSS_GB:g} GB of memory" if peak > MAX_RSS_GB else f"more than {timeout:.0f} s"
+            time.sleep(0.2)
+        proc.wait()
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    if why:
+        raise RuntimeError(f"killed after {time.perf_counter() - start:.0f} s: it took {why}")
     if proc.returncode != 0:
-        raise RuntimeError(f"fresh process failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+        raise RuntimeError(f"fresh process failed ({proc.returncode}):\n{stderr[-3000:]}")
+    out_ = json.loads(stdout.strip().splitlines()[-1])
+    out_["peak_rss_gb"] = peak
+    return out_
+
+
+MAX_RSS_GB = float(os.environ.get("JAXNH_BENCH_MAX_RSS_GB", "6"))
+"""A fresh process using more memory than this (GB) is killed (`JAXNH_BENCH_MAX_RSS_GB`)."""
+
+
+def _rss_gb(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS:")) / 1e6
+    except (OSError, StopIteration, ValueError):
+        return 0.0
 
 
 FRESH_HEAD = "import time as _t\n_w0, _c0 = _t.perf_counter(), _t.process_time()\n"

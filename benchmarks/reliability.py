@@ -34,8 +34,8 @@ import jax  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
-from jaxnh._base.status import describe  # noqa: E402
 from benchmarks import reliability_cases as R  # noqa: E402
+from jaxnh._base.status import describe  # noqa: E402
 
 
 OUT = HERE / "RELIABILITY.md"

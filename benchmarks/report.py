@@ -1,6 +1,6 @@
 """Write RESULTS.md and its figures from the studies' results/*.json (run by benchmarks.run_all).
 
-    python -m benchmarks.report
+python -m benchmarks.report
 """
 
 from __future__ import annotations
@@ -22,6 +22,23 @@ RECORDS = {
     "SWEEP.md": "batched sweeps and design gradients (recorded)",
 }
 
+HOW_TO_READ = (
+    "How to read it: in-process times are process CPU time (the machine is shared; CPU time is what a call "
+    "costs on an idle core, wall time also counts waiting for one), medians over interleaved rounds, each "
+    "benchmark process pinned to one core; a ratio is the median of per-round ratios of contenders timed in the "
+    "same round. Fresh-process times run with every core and the user's settings; their targets are judged on "
+    "CPU time. Every time comes with the error reached against a closed form or a tight-tolerance reference."
+)
+FIRST_ANSWERS = (
+    "Fresh processes with every core and the user's XLA settings, from before the first import to the answer "
+    "on the host, medians of {repeats} (`python -m benchmarks.first_answer`). *cold*: a default process, no "
+    "compilation cache. *cache, first / second*: `jaxnh.enable_compilation_cache()` right after the import with "
+    "`JAXNH_CACHE_DIR` an empty temporary folder, then a second process reading it; for the hand-written "
+    "program JAX's cache pointed at another empty folder (`JAX_COMPILATION_CACHE_DIR`, every program written). "
+    "The hand-written programs: eq. (9) and SymPy's Kane equations printed as JAX, `diffrax.Tsit5`, jitted, "
+    "same tolerances."
+)
+
 
 def t(s) -> str:
     """A duration in s, µs … s."""
@@ -39,9 +56,11 @@ def e(x) -> str:
 
 
 def table(header, rows) -> list:
-    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + [
-        "| " + " | ".join(str(c) for c in r) + " |" for r in rows
-    ] + [""]
+    return (
+        ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+        + [""]
+    )
 
 
 def met(ok) -> str:
@@ -54,11 +73,15 @@ def stamp(results: dict) -> list:
     measured = digests.pop() if len(digests) == 1 else "mixed"  # a mixed record is always stale
     starts = sorted((r["machine"]["date"], r["machine"]["load_average"]) for r in results.values())
     lines = [
-        f"> **Revision** `{m['revision']}`" + (" with uncommitted changes in jaxnh/" if m["uncommitted"] else "")
+        f"> **Revision** `{m['revision']}`"
+        + (" with uncommitted changes in jaxnh/" if m["uncommitted"] else "")
         + f"; source digest of jaxnh/: `{measured}`; measured {starts[0][0] if starts else m['date']}"
         + f" to {m['date']}; CPU {m['cpu']} ({m['cores']} cores), load average "
-        + ", ".join(f"{la[0]:.1f}" for _, la in starts) + " at the start of each study"
-        + f"; Python {m['python']}, " + ", ".join(f"{k} {v}" for k, v in m["versions"].items()) + ".",
+        + ", ".join(f"{la[0]:.1f}" for _, la in starts)
+        + " at the start of each study"
+        + f"; Python {m['python']}, "
+        + ", ".join(f"{k} {v}" for k, v in m["versions"].items())
+        + ".",
         "> `python -m benchmarks.run_all --stale` (or `benchmarks.common.stale()`) says whether jaxnh/ has changed "
         "since: the digest is a hash of every jaxnh/**/*.py.",
     ]
@@ -69,16 +92,30 @@ def stamp(results: dict) -> list:
     return lines + [""]
 
 
+def headline_names():
+    from .headline import FIELD, HAND, PLAIN
+
+    return PLAIN, HAND, FIELD
+
+
 def headline(R) -> tuple[list, list]:
     rows, r = R["rows"], R["ratios"]
-    P, H, F = "jaxnh simulate (defaults)", "eq. (9) by hand, diffrax Tsit5", "jaxnh Appell field (nh.ode), diffrax Tsit5"
+    P, H, F = headline_names()
     targets = [
-        ["`simulate` (defaults) / eq. (9) by hand in diffrax Tsit5, same tolerance, variator", "≤ 1.0×, error ≤ hand's",
-         f"{r['simulate / hand']:.2f}×", f"{e(rows[P]['error'])} vs {e(rows[H]['error'])}",
-         met(r["simulate / hand"] <= 1.0 and rows[P]["error"] <= rows[H]["error"])],
-        ["Appell field (`nh.ode`) in diffrax Tsit5 / hand field, per step", "≤ 1.3×",
-         f"{r['field per step / hand per step']:.2f}×", f"{e(rows[F]['error'])} vs {e(rows[H]['error'])}",
-         met(r["field per step / hand per step"] <= 1.3)],
+        [
+            "`simulate` (defaults) / eq. (9) by hand in diffrax Tsit5, same tolerance, variator",
+            "≤ 1.0×, error ≤ hand's",
+            f"{r['simulate / hand']:.2f}×",
+            f"{e(rows[P]['error'])} vs {e(rows[H]['error'])}",
+            met(r["simulate / hand"] <= 1.0 and rows[P]["error"] <= rows[H]["error"]),
+        ],
+        [
+            "Appell field (`nh.ode`) in diffrax Tsit5 / hand field, per step",
+            "≤ 1.3×",
+            f"{r['field per step / hand per step']:.2f}×",
+            f"{e(rows[F]['error'])} vs {e(rows[H]['error'])}",
+            met(r["field per step / hand per step"] <= 1.3),
+        ],
     ]
     out = [
         "## The variator: hand-written, SciPy and the limit",
@@ -89,11 +126,25 @@ def headline(R) -> tuple[list, list]:
         "benchmarks.headline`).",
         "",
     ]
-    body = [[k, t(v["cpu"]), t(v["wall"]), e(v.get("error")), f"{v['steps']:.0f}" if "steps" in v else "—",
-             t(v.get("per_step")), t(v["first_call_cpu"])] for k, v in rows.items()]
+    body = [
+        [
+            k,
+            t(v["cpu"]),
+            t(v["wall"]),
+            e(v.get("error")),
+            f"{v['steps']:.0f}" if "steps" in v else "—",
+            t(v.get("per_step")),
+            t(v["first_call_cpu"]),
+        ]
+        for k, v in rows.items()
+    ]
     out += table(["contender", "CPU per call", "wall", "error", "steps", "per step", "first call (CPU)"], body)
-    out += [f"Ratios (medians of per-round ratios): " + "; ".join(f"{k} {v:.2f}×" for k, v in r.items())
-            + f". The batch has {R['batch']} trajectories (J1 varied ±20 %).", ""]
+    out += [
+        "Ratios (medians of per-round ratios): "
+        + "; ".join(f"{k} {v:.2f}×" for k, v in r.items())
+        + f". The batch has {R['batch']} trajectories (J1 varied ±20 %).",
+        "",
+    ]
     return targets, out
 
 
@@ -104,43 +155,75 @@ def size(R) -> tuple[list, list, dict]:
     def row(N, k):
         return fa.get(f"{N} {k}", {})
 
-    ratios = {N: C.paired_ratio(row(N, "appell")["cpu"], row(N, "sympy")["cpu"]) for N in ncmp
-              if row(N, "appell").get("cpu") and row(N, "sympy").get("cpu")}
+    ratios = {
+        N: C.paired_ratio(row(N, "appell")["cpu"], row(N, "sympy")["cpu"])
+        for N in ncmp
+        if row(N, "appell").get("cpu") and row(N, "sympy").get("cpu")
+    }
     worst = max(ratios.items(), key=lambda kv: kv[1]) if ratios else (None, np.nan)
     sp = {N: st[str(N)]["SciPy / jaxnh"] for N in ncmp if str(N) in st}
     low = min(sp.items(), key=lambda kv: kv[1]) if sp else (None, np.nan)
     errs_j = [row(N, "appell").get("error") for N in ncmp]
     errs_s = [row(N, "sympy").get("error") for N in ncmp]
     targets = [
-        [f"car + N trailers, first answer in a fresh process: jaxnh / SymPy's pipeline, N = {ncmp[0]}…{ncmp[-1]}",
-         "< 1× at every N", f"worst {worst[1]:.2f}× (N = {worst[0]})",
-         f"≤ {e(np.nanmax(np.asarray(errs_j, float)))} vs ≤ {e(np.nanmax(np.asarray(errs_s, float)))}",
-         met(bool(ratios) and worst[1] < 1.0)],
-        [f"same, steady solve: SciPy with lambdified NumPy / jaxnh, N = {ncmp[0]}…{ncmp[-1]}", "≥ 50×",
-         f"lowest {low[1]:.1f}× (N = {low[0]})", "as above", met(bool(sp) and low[1] >= 50)],
+        [
+            f"car + N trailers, first answer in a fresh process: jaxnh / SymPy's pipeline, N = {ncmp[0]}…{ncmp[-1]}",
+            "< 1× at every N",
+            f"worst {worst[1]:.2f}× (N = {worst[0]})",
+            f"≤ {e(np.nanmax(np.asarray(errs_j, float)))} vs ≤ {e(np.nanmax(np.asarray(errs_s, float)))}",
+            met(bool(ratios) and worst[1] < 1.0),
+        ],
+        [
+            f"same, steady solve: SciPy with lambdified NumPy / jaxnh, N = {ncmp[0]}…{ncmp[-1]}",
+            "≥ 50×",
+            f"lowest {low[1]:.1f}× (N = {low[0]})",
+            "as above",
+            met(bool(sp) and low[1] >= 50),
+        ],
     ]
     a16, g16 = row(16, "appell"), row(16, "gradient")
     if a16.get("cpu"):
-        targets.append(["car + 16 trailers, first answer (CPU; wall in brackets)", "≤ 10 s",
-                        f"{a16['cpu_median']:.1f} s ({a16['wall_median']:.1f} s)", e(a16.get("error")),
-                        met(a16["cpu_median"] <= 10)])
+        targets.append(
+            [
+                "car + 16 trailers, first answer (CPU; wall in brackets)",
+                "≤ 10 s",
+                f"{a16['cpu_median']:.1f} s ({a16['wall_median']:.1f} s)",
+                e(a16.get("error")),
+                met(a16["cpu_median"] <= 10),
+            ]
+        )
     if a16.get("cpu") and g16.get("cpu"):
         gr = C.paired_ratio(g16["cpu"], a16["cpu"])
-        targets.append(["car + 16 trailers, first gradient / first answer", "≤ 2×", f"{gr:.2f}×",
-                        f"gradient {e(g16.get('error'))} (relative)", met(gr <= 2)])
+        targets.append(
+            [
+                "car + 16 trailers, first gradient / first answer",
+                "≤ 2×",
+                f"{gr:.2f}×",
+                f"gradient {e(g16.get('error'))} (relative)",
+                met(gr <= 2),
+            ]
+        )
     gro = R["growth"]
     if gro:
-        targets.append([f"growth of the first answer (after the import) with N = {ngrow[0]}…{ngrow[-1]}: t ∝ N^k",
-                        "—", ", ".join(f"{k} k = {v['exponent']:.2f}" for k, v in gro.items()), "see the table", "—"])
+        targets.append(
+            [
+                f"growth of the first answer (after the import) with N = {ngrow[0]}…{ngrow[-1]}: t ∝ N^k",
+                "—",
+                ", ".join(f"{k} k = {v['exponent']:.2f}" for k, v in gro.items()),
+                "see the table",
+                "—",
+            ]
+        )
     out = [
         "## The size study: a car pulling N trailers",
         "",
         "A car (a rigid body on one knife-edge axle) pulling N trailers, each on its own knife-edge axle: s = N + 3 "
         "coordinates, m = N + 1 constraints, rheonomic drive (`benchmarks/mechanisms/chain.py`). jaxnh's mechanism is "
         "written as the docs show (positions by cumulative sums, velocities by `jax.jvp` inside T); SymPy's is written "
-        "with `sympy.physics.mechanics` and `KanesMethod`; \"hand JAX\" is SymPy's result printed as JAX source. Every "
-        f"solve at rtol {R['rtol']:g}, atol {R['atol']:g}; errors against Kane's equations solved by Dopri8 at "
-        "rtol 1e-12 (N ≤ 8), else jaxnh's Lagrange form at rtol 1e-12 (`python -m benchmarks.size`).",
+        'with `sympy.physics.mechanics` and `KanesMethod`; "hand JAX" is SymPy\'s result printed as JAX source. Every '
+        f"solve at rtol {R['rtol']:g}, atol {R['atol']:g}; errors against Lagrange's equations written out by "
+        "hand in NumPy (they agree with SymPy's to 1e-13) solved by SciPy's DOP853 at rtol 1e-12 "
+        "(`python -m benchmarks.size`).",
         "",
         "### First answers against SymPy's pipeline",
         "",
@@ -152,37 +235,71 @@ def size(R) -> tuple[list, list, dict]:
     body = []
     for N in ncmp:
         j, s = row(N, "appell"), row(N, "sympy")
-        body.append([N, f"{t(j.get('cpu_median'))} ({t(j.get('wall_median'))})", e(j.get("error")),
-                     f"{t(s.get('cpu_median'))} ({t(s.get('wall_median'))})", e(s.get("error")),
-                     f"{ratios[N]:.2f}×" if N in ratios else "—"])
+        body.append(
+            [
+                N,
+                f"{t(j.get('cpu_median'))} ({t(j.get('wall_median'))})",
+                e(j.get("error")),
+                f"{t(s.get('cpu_median'))} ({t(s.get('wall_median'))})",
+                e(s.get("error")),
+                f"{ratios[N]:.2f}×" if N in ratios else "—",
+            ]
+        )
     out += table(["N", "jaxnh", "error", "SymPy + SciPy", "error", "jaxnh / SymPy"], body)
-    out += ["### Steady solves", "",
-            "After compilation, in one process on one core: CPU time per solve, medians of interleaved rounds.", ""]
+    out += [
+        "### Steady solves",
+        "",
+        "After compilation, in one process on one core: CPU time per solve, medians of interleaved rounds.",
+        "",
+    ]
     body = []
     for N in ncmp:
         if str(N) not in st:
             continue
         r_ = st[str(N)]
-        body.append([N] + [f"{t(r_[k]['cpu'])} ({e(r_[k]['error'])}, {r_[k]['steps']:.0f} steps)"
-                           for k in ("jaxnh", "SciPy", "hand JAX")]
-                    + [f"{r_['SciPy / jaxnh']:.1f}×", f"{r_['jaxnh / hand JAX']:.2f}×"])
-    out += table(["N", "jaxnh `simulate` (error, steps)", "SciPy RK45, lambdified", "hand JAX, diffrax Tsit5",
-                  "SciPy / jaxnh", "jaxnh / hand JAX"], body)
-    out += ["### Compile-time growth", "",
-            "First answers in fresh processes, as above: CPU time after the import (wall time of the whole process in "
-            "brackets), error; the gradient is `jax.grad` of the final coordinates' sum with respect to every parameter "
-            "(its error: relative, of its product with a random direction of the parameters that do not move the axles, "
-            "against a central difference of the reference). Figure: `figures/chain.png`.", ""]
+        body.append(
+            [N]
+            + [
+                f"{t(r_[k]['cpu'])} ({e(r_[k]['error'])}, {r_[k]['steps']:.0f} steps)"
+                for k in ("jaxnh", "SciPy", "hand JAX")
+            ]
+            + [f"{r_['SciPy / jaxnh']:.1f}×", f"{r_['jaxnh / hand JAX']:.2f}×"]
+        )
+    out += table(
+        [
+            "N",
+            "jaxnh `simulate` (error, steps)",
+            "SciPy RK45, lambdified",
+            "hand JAX, diffrax Tsit5",
+            "SciPy / jaxnh",
+            "jaxnh / hand JAX",
+        ],
+        body,
+    )
+    out += [
+        "### Compile-time growth",
+        "",
+        "First answers in fresh processes, as above: CPU time after the import (wall time of the whole process "
+        "in brackets), error, peak memory of the process; the gradient is `jax.grad` of the final coordinates' "
+        "sum with respect to every parameter (its error: relative, of its product with a random direction of "
+        "the parameters that do not move the axles, against a central difference of the reference). Figure: "
+        "`figures/chain.png`.",
+        "",
+    ]
     body = []
     for N in ngrow:
         cells = [N]
         for k in ("appell", "lagrange", "gradient"):
             r_ = row(N, k)
-            if r_.get("cpu_after_import_median") is None:
-                cells.append("failed: " + r_.get("note", "not run")[:160].replace("|", "/"))
+            if r_.get("cpu_after_import_median") is None or r_.get("error") is None or not np.isfinite(r_["error"]):
+                took = f" after {t(r_['cpu_after_import_median'])}" if r_.get("cpu_after_import_median") else ""
+                cells.append(f"**failed**{took}: " + (r_.get("note") or "not run")[:200].replace("|", "/"))
             else:
-                cells.append(f"{t(r_['cpu_after_import_median'])} ({t(r_['wall_median'])}), {e(r_.get('error'))}"
-                             + (f" — {r_['note'][:120]}" if r_.get("note") else ""))
+                cells.append(
+                    f"{t(r_['cpu_after_import_median'])} ({t(r_['wall_median'])}), {e(r_.get('error'))}, "
+                    f"{r_.get('peak_rss_gb', float('nan')):.1f} GB"
+                    + (f" — {r_['note'][:120]}" if r_.get("note") else "")
+                )
         body.append(cells)
     out += table(["N", "appell (default)", "lagrange", "first gradient"], body)
     out += ["Fitted exponents k of t ∝ N^k: " + "; ".join(f"{k} {v['exponent']:.2f}" for k, v in gro.items()) + ".", ""]
@@ -190,32 +307,41 @@ def size(R) -> tuple[list, list, dict]:
 
 
 def first_answer(R) -> tuple[list, list]:
-    targets, out = [], [
-        "## First answers",
-        "",
-        "Fresh processes with every core and the user's XLA settings, from before the first import to the answer on "
-        "the host, medians of " + str(R["repeats"]) + " (`python -m benchmarks.first_answer`). *cold*: a default "
-        "process, no compilation cache. *cache, first / second*: `jaxnh.enable_compilation_cache()` right after the "
-        "import with `JAXNH_CACHE_DIR` an empty temporary folder, then a second process reading it; for the hand-written "
-        "program JAX's cache pointed at another empty folder (`JAX_COMPILATION_CACHE_DIR`, every program written). "
-        "The hand-written programs: eq. (9) and SymPy's Kane equations printed as JAX, `diffrax.Tsit5`, jitted, same "
-        "tolerances.",
-        "",
-    ]
+    targets = []
+    out = ["## First answers", "", FIRST_ANSWERS.format(repeats=R["repeats"]), ""]
     for m, rr in R["rows"].items():
         r = R["ratios"][m]
         targets += [
-            [f"{m}: first answer, jaxnh / hand-written diffrax program, cold", "≤ 1.2×",
-             f"{r['cold / hand cold (CPU)']:.2f}× CPU ({r['cold / hand cold']:.2f}× wall)",
-             f"{e(rr['jaxnh cold']['error'])} vs {e(rr['hand cold']['error'])}", met(r["cold / hand cold (CPU)"] <= 1.2)],
-            [f"{m}: second process with the cache, jaxnh / hand-written cold", "≤ 0.5×",
-             f"{r['cache second / hand cold (CPU)']:.2f}× CPU ({r['cache second / hand cold']:.2f}× wall)",
-             e(rr["jaxnh cache, second"]["error"]), met(r["cache second / hand cold (CPU)"] <= 0.5)],
+            [
+                f"{m}: first answer, jaxnh / hand-written diffrax program, cold",
+                "≤ 1.2×",
+                f"{r['cold / hand cold (CPU)']:.2f}× CPU ({r['cold / hand cold']:.2f}× wall)",
+                f"{e(rr['jaxnh cold']['error'])} vs {e(rr['hand cold']['error'])}",
+                met(r["cold / hand cold (CPU)"] <= 1.2),
+            ],
+            [
+                f"{m}: second process with the cache, jaxnh / hand-written cold",
+                "≤ 0.5×",
+                f"{r['cache second / hand cold (CPU)']:.2f}× CPU ({r['cache second / hand cold']:.2f}× wall)",
+                e(rr["jaxnh cache, second"]["error"]),
+                met(r["cache second / hand cold (CPU)"] <= 0.5),
+            ],
         ]
         out += [f"**{m}**", ""]
-        out += table(["process", "CPU", "wall", "error", "cache entries written"],
-                     [[k, t(v["cpu_median"]), t(v["wall_median"]), e(v["error"]), v.get("cache_entries", "")]
-                      for k, v in rr.items()])
+        out += table(
+            ["process", "CPU", "wall", "of which the imports (wall)", "error", "cache entries written"],
+            [
+                [
+                    k,
+                    t(v["cpu_median"]),
+                    t(v["wall_median"]),
+                    t(v.get("import_median")),
+                    e(v["error"]),
+                    v.get("cache_entries", ""),
+                ]
+                for k, v in rr.items()
+            ],
+        )
     return targets, out
 
 
@@ -231,40 +357,53 @@ def precision(R) -> tuple[list, list]:
         other = _interp(lag, err)
         if other:
             ratios.append(cpu / other)
-    targets = [["rolling ball: default formulation (Appell) / Lagrange, time at the same error, rtol "
-                f"{R['rtols'][0]:g}…{R['rtols'][-1]:g}", "—",
-                f"{min(ratios):.2f}×…{max(ratios):.2f}× ({len(ratios)} matched points)" if ratios else "no overlap",
-                "closed form", "—"]]
+    targets = [
+        [
+            "rolling ball: default formulation (Appell) / Lagrange, time at the same error, rtol "
+            f"{R['rtols'][0]:g}…{R['rtols'][-1]:g}",
+            "—",
+            f"{min(ratios):.2f}×…{max(ratios):.2f}× ({len(ratios)} matched points)" if ratios else "no overlap",
+            "closed form and a tight reference",
+            "—",
+        ]
+    ]
     out = [
         "## Work–precision: the rolling ball",
         "",
         "A ball rolling without slipping on a turntable, orientation by a quaternion (`benchmarks/mechanisms/ball.py`: "
         f"s = 6, 2 rolling constraints and the unit quaternion's), {R['horizon']:g} s. A plain `simulate` per "
-        "tolerance (atol = rtol/100), CPU time per call, error of the centre's position and velocity against the "
-        "closed form (`python -m benchmarks.precision`). Figure: `figures/wp_ball.png`.",
+        "tolerance (atol = rtol/100), CPU time per call; error: the larger of the centre's position and velocity "
+        "against the closed form and the whole state against a reference (Appell, Dopri8, rtol 1e-14: its centre is "
+        f"{e(R.get('reference_centre_error'))} from the closed form and its state {e(R.get('reference_floor'))} from "
+        "Lagrange's at that tolerance, the floor below which errors mean nothing) (`python -m benchmarks.precision`). "
+        "Figure: `figures/wp_ball.png`.",
         "",
     ]
+    keys = sorted({(r["method"], r["solver"]) for r in rows.values()}, key=lambda k: (k[0], k[1] != "default", k[1]))
     body = []
     for rtol in R["rtols"]:
         cells = [f"{rtol:g}"]
-        for key in sorted({(r["method"], r["solver"]) for r in rows.values()}):
+        for key in keys:
             r = rows[f"{key[0]} {key[1]} {rtol:g}"]
             cells.append(f"{t(r['cpu'])}, {e(r['error'])}")
         body.append(cells)
-    keys = sorted({(r["method"], r["solver"]) for r in rows.values()})
     out += table(["rtol"] + [f"{m}, {s} solver" for m, s in keys], body)
     if len(keys) > 2:
-        out += ["### Default solver", "",
-                "The default solver (`jaxnh.default_solver`) against diffrax's Tsit5 and Dopri8 on the same curve: "
-                "time at the error the default reaches, interpolated on the fixed solvers' curves.", ""]
+        out += [
+            "### Default solver",
+            "",
+            "The default solver (`jaxnh.default_solver`) against diffrax's Tsit5 and Dopri8 in the same formulation: "
+            "the default's time over theirs at the errors the default reaches (interpolated on their curves).",
+            "",
+        ]
         body = []
-        for (m, s) in keys:
+        for m, s in keys:
             if s == "default":
                 continue
-            for err, cpu in sorted(curves[(m, "default")]):
-                other = _interp(sorted(curves[(m, s)]), err)
-                body.append([m, s, e(err), t(cpu), t(other), f"{cpu / other:.2f}×" if other else "—"])
-        out += table(["formulation", "other solver", "error", "default", "other at that error", "default / other"], body)
+            rs = [cpu / o for err, cpu in curves[(m, "default")] if (o := _interp(sorted(curves[(m, s)]), err))]
+            cell = f"{np.median(rs):.2f}× ({min(rs):.2f}×…{max(rs):.2f}×, {len(rs)} points)" if rs else "no overlap"
+            body.append([m, s, cell])
+        out += table(["formulation", "other solver", "default / other at the same error: median (range)"], body)
     return targets, out
 
 
@@ -297,11 +436,16 @@ def figures(results):
                 ax[0].plot(*zip(*pts), "o-", label=label)
         ax[0].set(xlabel="N trailers", ylabel="first answer, CPU s (fresh process)", title="against SymPy")
         for k in ("appell", "lagrange", "gradient"):
-            pts = [(N, fa[f"{N} {k}"]["cpu_after_import_median"]) for N in R["ns_growth"]
-                   if fa.get(f"{N} {k}", {}).get("cpu_after_import_median")]
+            pts = [
+                (N, fa[f"{N} {k}"]["cpu_after_import_median"])
+                for N in R["ns_growth"]
+                if fa.get(f"{N} {k}", {}).get("cpu_after_import_median")
+            ]
             if pts:
                 ax[1].loglog(*zip(*pts), "o-", label=k)
         ax[1].set(xlabel="N trailers", ylabel="CPU s after the import", title="growth")
+        ax[1].set_xticks(R["ns_growth"], [str(n) for n in R["ns_growth"]])
+        ax[1].minorticks_off()
         for a in ax:
             a.legend()
             a.grid(alpha=0.3)
@@ -333,19 +477,19 @@ def main():
         else:
             sections += [f"## {name}", "", f"Not run (`python -m benchmarks.{name}`).", ""]
     figures(results)
-    lines = ["# jaxnh benchmarks", ""] + stamp(results) + [
-        "Written by `python -m benchmarks.run_all` (`make bench`; `make bench-quick` writes a short run to "
-        "`benchmarks/quick/`). Every number below comes from `results/*.json` beside this file.",
-        "",
-        "How to read it: in-process times are process CPU time (the machine is shared; CPU time is what a call costs "
-        "on an idle core, wall time also counts waiting for one), medians over interleaved rounds, each benchmark "
-        "process pinned to one core; a ratio is the median of per-round ratios of contenders timed in the same round. "
-        "Fresh-process times run with every core and the user's settings; their targets are judged on CPU time. "
-        "Every time comes with the error reached against a closed form or a tight-tolerance reference.",
-        "",
-        "## Targets",
-        "",
-    ]
+    lines = (
+        ["# jaxnh benchmarks", ""]
+        + stamp(results)
+        + [
+            "Written by `python -m benchmarks.run_all` (`make bench`; `make bench-quick` writes a short run to "
+            "`benchmarks/quick/`). Every number below comes from `results/*.json` beside this file.",
+            "",
+            HOW_TO_READ,
+            "",
+            "## Targets",
+            "",
+        ]
+    )
     lines += table(["target", "goal", "measured", "error (jaxnh vs peer)", "met"], targets)
     lines += sections
     lines += ["## Other studies", "", "Reports beside this file, each stamped with what it measured:", ""]

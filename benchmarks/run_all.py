@@ -42,8 +42,9 @@ def run(module: str, args: list) -> dict:
             os.sched_setaffinity(0, set(C._CPUS0))
 
     env = dict(C._ENV0, **({"JAXNH_BENCH_OUT": str(C.OUT)} if C.OUT != C.HERE else {}))
-    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", *args], cwd=str(C.ROOT), env=env,
-                          preexec_fn=unpin)
+    proc = subprocess.run(
+        [sys.executable, "-m", f"benchmarks.{module}", *args], cwd=str(C.ROOT), env=env, preexec_fn=unpin
+    )
     dt = time.perf_counter() - t0
     C.log(f"=== benchmarks.{module}: {'ok' if proc.returncode == 0 else f'FAILED ({proc.returncode})'} in {dt:.0f} s")
     return dict(module=module, args=args, returncode=proc.returncode, seconds=dt)
@@ -69,8 +70,11 @@ def main(argv=None):
     log = [run(m, ["--quick"] if a.quick else []) for m in todo]
     log.append(run("report", []))
     failed = [r["module"] for r in log if r["returncode"] != 0]
-    C.log(f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
-          + (f"FAILED: {failed}" if failed else "all ok") + f"; see {C.OUT / 'RESULTS.md'}")
+    C.log(
+        f"\nrun_all: {len(log)} scripts in {time.perf_counter() - t0:.0f} s; "
+        + (f"FAILED: {failed}" if failed else "all ok")
+        + f"; see {C.OUT / 'RESULTS.md'}"
+    )
     sys.exit(1 if failed else 0)
 
 
