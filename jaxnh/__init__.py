@@ -27,6 +27,7 @@ if os.environ.get("JAXNH_X64", "1") != "0":
     jax.config.update("jax_enable_x64", True)
 
 from jaxnh import equations, linalg, profiles, rigid, solvers  # noqa: E402
+from jaxnh._analysis.friction_margin import stick_margin, StickMargin  # noqa: E402
 from jaxnh._analysis.linearize import Linearization, linearize  # noqa: E402
 from jaxnh._analysis.sweep import sweep  # noqa: E402
 from jaxnh._base.cache import enable_compilation_cache  # noqa: E402
@@ -42,7 +43,9 @@ from jaxnh._equations import (  # noqa: E402
 )
 from jaxnh._equations.consistent import consistent_velocities  # noqa: E402
 from jaxnh._equations.step_maps import StepMaps  # noqa: E402
+from jaxnh._model.contacts import FrictionContact  # noqa: E402
 from jaxnh._model.mechanism import Mechanism  # noqa: E402
+from jaxnh._solve.friction import ContactDiagnostics  # noqa: E402
 from jaxnh._solve.holonomic import HolonomicMechanism  # noqa: E402
 from jaxnh._solve.ode import ODE, ode  # noqa: E402
 from jaxnh._solve.sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
@@ -87,6 +90,10 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Mechanism",
+    "FrictionContact",
+    "ContactDiagnostics",
+    "stick_margin",
+    "StickMargin",
     "HolonomicMechanism",
     "enable_compilation_cache",
     "Appell",

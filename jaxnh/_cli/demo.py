@@ -10,15 +10,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnh._analysis.friction_margin import stick_margin
 from jaxnh._base.atomic import atomic_save_figure
 from jaxnh._cli.fit import demo_fit
 from jaxnh._equations import accelerations
-from jaxnh._model.profiles import Constant
+from jaxnh._model.profiles import Constant, Fourier
 from jaxnh._solve.simulate import simulate
 from jaxnh.models import variator as V
 
 
-__all__ = ["run", "equation_coefficients", "plot_methods", "METHODS"]
+__all__ = ["run", "equation_coefficients", "friction_limit", "plot_methods", "METHODS"]
 
 METHODS = ("lagrange", "appell", "substituted")
 
@@ -121,6 +122,8 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
         report[f"energy_drift_{m}"] = drift
         print(f"   {m:<12} max |T − T0| / T0 = {drift:9.2e}")
 
+    report["friction"] = friction_limit(p)
+
     if figures:
         fig_path = os.path.join(out_dir, "variator_methods.png")
         _save(plot_methods(ts, q_ref, qd_ref, sols, tf, energies), fig_path)
@@ -129,6 +132,45 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
     if fit:
         report["fit"] = demo_fit(out_dir, figures=figures)
     return report
+
+
+def friction_limit(p: V.VariatorParams, w0: float = 2.0) -> dict:
+    """Section 4 of the demo: the roller held by friction (`jaxnh.models.variator.friction_mechanism`;
+    radius 50 mm, pressed with 40 N, μs = 0.3, μk = 0.25). The default ratio law keeps it rolling;
+    the same law cycled twice as fast needs more tangential force than friction gives, and it slips.
+    Prints and returns, per ratio period (s): the largest |F|/(μs N) of the rolling motion
+    (`stick_margin`), the transitions of the friction solve (s), the slip time (s) and the
+    energy dissipated by slip (J)."""
+    mech = V.friction_mechanism()
+    ts = jnp.linspace(0.0, 4.0, 401)
+    q0 = jnp.zeros(2)
+    print("\n4. Friction limit: the roller (r = 50 mm) pressed with N = 40 N, μs = 0.3, μk = 0.25, over 4 s")
+    out = {}
+    for period in (2.0, 1.0):
+        U21 = Fourier(1.0, cos=[0.0], sin=[0.4], period=period)
+        drive = V.DriveParams(V.VariatorParams(p.J1, p.J2, U21, p.M1, p.M2), 0.05, 40.0, 0.3, 0.25)
+        qd0 = jnp.array([w0, U21(0.0) * w0])
+        peak = float(jnp.max(stick_margin(mech, drive, q0, qd0, ts, rtol=1e-10, atol=1e-12).utilisation))
+        sol = simulate(mech, drive, q0, qd0, ts, rtol=1e-10, atol=1e-12)
+        assert sol.contacts is not None  # the mechanism has a contact
+        c = sol.contacts
+        moves = c.transitions("roller")
+        print(f"   U21 = 1 + 0.4 sin(2πt/{period:g}): rolling would need up to {peak:.3f} × μs N")
+        if not moves:
+            print("     → it keeps rolling")
+        else:
+            print("     → " + ", ".join(f"{kind} at {t:.4f} s" for t, kind in moves))
+            print(
+                f"       slipping {float(c.slip_time[0]):.4f} s in all, dissipating "
+                f"{float(c.dissipated_energy[0]):.4f} J (see docs: Friction)"
+            )
+        out[period] = dict(
+            peak_utilisation=peak,
+            transitions=moves,
+            slip_time=float(c.slip_time[0]),
+            dissipated=float(c.dissipated_energy[0]),
+        )
+    return out
 
 
 def _save(fig, path: str) -> str:

@@ -26,6 +26,7 @@ import numpy as np
 from jaxnh._base.compile import one_shot_jit
 from jaxnh._base.linalg import value_and_jacfwd
 from jaxnh._model.checks import consistency_tolerance, consistent, nearly_dependent
+from jaxnh._model.contacts import as_contacts, check_contact_shapes, check_contacts
 
 
 __all__ = ["Mechanism"]
@@ -73,6 +74,12 @@ class Mechanism(eqx.Module):
             dependent velocities where possible (`qd2 − sqrt(qd0² + qd1²)`
             rather than `qd0² + qd1² − qd2²`, whose Jacobian vanishes at
             zero); Chetaev's rule gives the same constraint forces for both.
+        contacts: friction-held constraint rows, a sequence of
+            `jaxnh.FrictionContact` (default none: every constraint holds
+            whatever force it takes). Each contact names rows of `constraints`
+            written as slip velocities (m/s); they hold while the force they
+            need is inside the static friction cone and slip otherwise
+            (see the friction page of the documentation).
     """
 
     kinetic: Callable = eqx.field(static=True)
@@ -84,6 +91,7 @@ class Mechanism(eqx.Module):
     names: Optional[tuple] = eqx.field(static=True, default=None)
     independent: Optional[tuple] = eqx.field(static=True, default=None)
     nonlinear_constraints: bool = eqx.field(static=True, default=False)
+    contacts: tuple = eqx.field(static=True, default=(), converter=as_contacts)
 
     def __check_init__(self):
         if not callable(self.kinetic):
@@ -101,6 +109,9 @@ class Mechanism(eqx.Module):
             )
         if self.names is not None and not all(isinstance(n, str) for n in self.names):
             raise TypeError(f"Mechanism: `names` must be a sequence of strings, got {self.names!r}")
+        check_contacts(self.contacts)
+        if self.contacts and self.constraints is None:
+            raise ValueError("Mechanism: `contacts` hold rows of `constraints`, but no `constraints` were given")
 
     # --- evaluation helpers used by the formulations -------------------------
 
@@ -205,6 +216,7 @@ class Mechanism(eqx.Module):
                     f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}"
                 )
             m = c.shape[0]
+            check_contact_shapes(self.contacts, m, q, qd, t, params)
         if self.holonomic is not None:
             g = out(self.holonomic, "holonomic", q, t, params)
             if len(getattr(g, "shape", ())) != 1:

@@ -29,6 +29,7 @@ from jaxnh._equations.scalarize import scalarized
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints
 from jaxnh._solve.diagnose import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
+from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.rk import UnrolledTsit5
 from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import DenseMotion, Solution
@@ -203,6 +204,7 @@ def simulate(
     baumgarte_rate=None,
     dtmax=None,
     step_ts=None,
+    max_transitions: int = MAX_TRANSITIONS,
 ) -> Solution:
     """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
 
@@ -265,6 +267,9 @@ def simulate(
             (`jaxnh.profiles.SmoothStep`, the knots of `PiecewiseLinear`),
             which are added to these; with an own `stepsize_controller`,
             they are applied when it is a `diffrax.PIDController`.
+        max_transitions: for a mechanism with friction contacts, the most
+            changes between sticking and slipping (restarts of the solve);
+            more stop it with `STATUS.friction_transitions_exceeded`.
 
     Returns:
         A `Solution`.
@@ -350,6 +355,12 @@ def simulate(
         )
     ):
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
+    if mech.contacts:  # friction-held rows: the segmented solve (jaxnh/_solve/friction.py)
+        return simulate_friction(
+            mech, form, params, q0, qd0, ts, solver=solver, stepsize_controller=stepsize_controller, record=record,
+            saveat=saveat, event=event, progress_meter=progress_meter, adjoint=adjoint, max_steps=max_steps, dt0=dt0,
+            throw=throw, rtol=float(rtol), max_transitions=max_transitions,
+        )  # fmt: skip
     traced = is_traced(params, q0, qd0, ts, form)
     sol = _run(
         mech,

@@ -6,7 +6,7 @@ from typing import Any, Optional
 
 import equinox as eqx
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from jaxnh._base.compat import status_code, status_code_int
 from jaxnh._base.dataframe import solution_to_dataframe
@@ -64,6 +64,14 @@ class Solution(eqx.Module):
         event_mask: with `event=`, which event stopped the run (diffrax's
             convention), else None.
         names: coordinate names.
+        slipping: for a mechanism with friction contacts
+            (`Mechanism(contacts=...)`), whether each contact slips at each
+            report time, bool (n, number of contacts); else None.
+        contacts: for a mechanism with friction contacts, the per-contact
+            diagnostics (`jaxnh.ContactDiagnostics`: transition times and
+            kinds, slip intervals and time, peak ‖λ‖/(μs N) while rolling,
+            smallest stick margin, slip distance, energy dissipated by
+            slip); else None.
     """
 
     ts: Float[Array, " n"]
@@ -77,6 +85,8 @@ class Solution(eqx.Module):
     names: tuple = eqx.field(static=True)
     dense: Optional[DenseMotion] = None
     event_mask: Any = None
+    slipping: Optional[Bool[Array, "n c"]] = None
+    contacts: Any = None  # a jaxnh.ContactDiagnostics (defined with the friction solve)
 
     @property
     def success(self):
@@ -101,6 +111,8 @@ class Solution(eqx.Module):
         """'success', or why the solve failed; for a batch, a count of each outcome."""
         codes = np.asarray(status_code(self.status))
         if codes.ndim == 0:
+            if self.contacts is not None:  # a friction solve names the time and the contact of its stop
+                return self.contacts.annotate(describe(self.status), self.status)
             return describe(self.status)
         if np.all(codes == status_code_int(STATUS.successful)):
             return f"success ({codes.size} of {codes.size})"

@@ -23,6 +23,8 @@ Units: angles rad, inertias kg·m², torques N·m, time s.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -30,6 +32,7 @@ import numpy as np
 from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
+from jaxnh._model.contacts import FrictionContact
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import Constant, Fourier, Profile
 
@@ -42,6 +45,9 @@ __all__ = [
     "paper_eq9",
     "paper_eq16",
     "paper_multiplier",
+    "DriveParams",
+    "friction_mechanism",
+    "ContactRadius",
 ]
 
 
@@ -105,6 +111,92 @@ def mechanism(acceleration_energy_given: bool = False) -> Mechanism:
         names=("phi1", "phi2"),
         independent=(0,),
     )
+
+
+class DriveParams(eqx.Module):
+    """The variator with its roller held by friction (`friction_mechanism`).
+
+    Attributes:
+        variator: the variator's inertias, ratio law and torques (`VariatorParams`).
+        radius: the roller's radius r, m (the contact radius on shaft 2 is
+            rho(t) = r / U21(t)).
+        normal_force: the force N pressing the roller onto shaft 2, N.
+        mu_static: static friction coefficient μs of the roller's contact.
+        mu_kinetic: kinetic friction coefficient μk ≤ μs.
+    """
+
+    variator: VariatorParams
+    radius: Float[Array, ""]
+    normal_force: Float[Array, ""]
+    mu_static: Float[Array, ""]
+    mu_kinetic: Float[Array, ""]
+
+    def __init__(self, variator: VariatorParams, radius, normal_force, mu_static, mu_kinetic):
+        f = jnp.result_type(float)
+        self.variator = variator
+        self.radius, self.normal_force = jnp.asarray(radius, dtype=f), jnp.asarray(normal_force, dtype=f)
+        self.mu_static, self.mu_kinetic = jnp.asarray(mu_static, dtype=f), jnp.asarray(mu_kinetic, dtype=f)
+
+
+def slip_velocity(q, qd, t, p: DriveParams):
+    """Slip velocity of the roller's contact, r phi1' − rho(t) phi2' with rho = r / U21, m/s
+    (paper eq. 4 times rho): the row a `FrictionContact` holds, its multiplier the tangential
+    force, N (the paper's lambda, N·m, is rho times it)."""
+    r, U = p.radius, p.variator.U21(t)
+    return jnp.stack([r * qd[0] - (r / U) * qd[1]])
+
+
+def _drive_kinetic(q, qd, t, p: DriveParams):
+    return kinetic(q, qd, t, p.variator)
+
+
+def _drive_torques(q, qd, t, p: DriveParams):
+    return torques(q, qd, t, p.variator)
+
+
+def _normal_force(q, qd, t, p: DriveParams):
+    return p.normal_force
+
+
+def _mu_static(q, qd, t, p: DriveParams):
+    return p.mu_static
+
+
+def _mu_kinetic(q, qd, t, p: DriveParams):
+    return p.mu_kinetic
+
+
+def friction_mechanism() -> Mechanism:
+    """The variator whose roller transmits torque only by friction: its rolling constraint
+    (`slip_velocity`) is held while the tangential force it needs is inside μs N and slips
+    otherwise, with the kinetic force μk N against the slip. Parameters: `DriveParams`.
+    (Built from module-level functions: every call returns an equal mechanism, which reuses
+    the programs compiled for another.)"""
+    roller = FrictionContact(0, _normal_force, _mu_static, _mu_kinetic, name="roller")
+    return Mechanism(
+        _drive_kinetic,
+        constraints=slip_velocity,
+        forces=_drive_torques,
+        names=("phi1", "phi2"),
+        independent=(0,),
+        contacts=(roller,),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactRadius:
+    """The roller's contact radius on shaft 2, ρ(t) = r / U21(t), m: the lever that turns the
+    tangential contact force (N) into the multiplier of eq. (4) (N·m). A hashable function
+    `(t, params: VariatorParams) -> ρ`, for `jaxnh.identify.StickLimit(lever=...)`.
+
+    Attributes:
+        radius: the roller's radius r, m.
+    """
+
+    radius: float
+
+    def __call__(self, t, p: VariatorParams):
+        return self.radius / p.U21(t)
 
 
 def default_params() -> VariatorParams:
