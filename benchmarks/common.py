@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import importlib.util
 import json
 import os
 import pathlib
 import platform
 import re
+import shlex
 import subprocess
 import sys
 import tempfile
@@ -246,13 +248,54 @@ def machine() -> dict:
     )
 
 
+def report_dir(quick: bool) -> pathlib.Path:
+    """Where a study that writes its own report (STABILITY.md, CALIBRATION.md, …) puts it and its results/:
+    `$JAXNH_BENCH_OUT` when set, else benchmarks/quick/ for a `--quick` run (a short run leaves the
+    recorded report alone), else benchmarks/."""
+    out = OUT if OUT != HERE else (HERE / "quick" if quick else HERE)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def stamp_line(command: str) -> str:
+    """The line under the title of a report that a study writes itself (STABILITY.md, CALIBRATION.md, …):
+    the command that wrote it, the revision, the source digest of jaxnh/ (what `stale(path)` compares),
+    the date, the CPU and the load. Same facts as RESULTS.md's stamp."""
+    m = machine()
+    v = m["versions"]
+    return (
+        f"> Written by `{command}`; **revision** `{m['revision']}`"
+        + (" with uncommitted changes in jaxnh/" if m["uncommitted"] else "")
+        + f"; source digest of jaxnh/: `{m['digest']}`; {m['date']}; CPU {m['cpu']} ({m['cores']} cores), "
+        + f"load average {m['load_average'][0]:.1f} at the end; JAX {v['jax']}, diffrax {v['diffrax']} "
+        + "(`benchmarks.common.stale(path)` compares the digest with today's jaxnh/)."
+    )
+
+
+def command(module: str, argv=None) -> str:
+    """How this study was run, for its report: `python -m benchmarks.<module> <arguments>`."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    return shlex.join(["python", "-m", "benchmarks." + module, *args])
+
+
+def example(name: str):
+    """The module examples/<name>.py (the examples are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 # --------------------------------------------------------------------------- output
 
 
-def save(name: str, data: dict) -> pathlib.Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
+def save(name: str, data: dict, out: pathlib.Path | None = None) -> pathlib.Path:
+    """Write `data` and the `machine()` stamp to results/<name>.json under `out` (default `OUT`)."""
+    folder = RESULTS if out is None else pathlib.Path(out) / "results"
+    folder.mkdir(parents=True, exist_ok=True)
     data = dict(data, machine=machine())
-    path = RESULTS / f"{name}.json"
+    path = folder / f"{name}.json"
     path.write_text(json.dumps(data, indent=1, default=_jsonable))
     return path
 

@@ -11,15 +11,15 @@ from . import common as C
 
 
 STUDIES = ("headline", "size", "first_answer", "precision")
-RECORDS = {
+RECORDS = {  # reports their own scripts write (not run by run_all); each says its command and revision at its top
     "RELIABILITY.md": "no silent wrong answers: outcomes of many fuzzed cases (`python -m benchmarks.reliability`)",
-    "STABILITY.md": "long runs, constraint drift, float32 (recorded; see the file for its script)",
-    "BICYCLE.md": "cost of the Whipple bicycle's linearisation, jaxnh against SymPy (recorded)",
-    "CALIBRATION.md": "coverage of the fit's 95 % intervals (recorded)",
-    "EXPERIMENT.md": "experiment design: predicted against realised precision (recorded)",
-    "FIT_COST.md": "cost of `jaxnh fit` on the embedded record (recorded)",
-    "MODEL_ERROR.md": "fits when the truth lies outside the model class (recorded)",
-    "SWEEP.md": "batched sweeps and design gradients (recorded)",
+    "STABILITY.md": "long runs, constraint drift, float32 (`python -m benchmarks.stability`)",
+    "BICYCLE.md": "cost of the Whipple bicycle's linearisation, jaxnh vs SymPy (`python -m benchmarks.bicycle_cost`)",
+    "CALIBRATION.md": "coverage of the fit's 95 % intervals (`python -m benchmarks.calibration`)",
+    "EXPERIMENT.md": "experiment design: predicted vs realised precision (`python -m benchmarks.experiment_design`)",
+    "FIT_COST.md": "cost of `jaxnh fit` on the embedded record (`python -m benchmarks.fit_cost`)",
+    "MODEL_ERROR.md": "fits when the truth lies outside the model class (`python -m benchmarks.model_error`)",
+    "SWEEP.md": "batched sweeps and design gradients (`python -m benchmarks.sweep_bench`)",
 }
 
 HOW_TO_READ = (

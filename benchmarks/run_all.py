@@ -16,6 +16,12 @@ Studies (each in its own process; one failure does not stop the rest):
 * first_answer — fresh processes, cold and with the compilation cache, against
   hand-written diffrax programs.
 * precision — work–precision of the rolling ball, Appell against Lagrange.
+
+Not run here: studies that write their own report beside RESULTS.md (each run as
+`python -m benchmarks.<name>`, with a `--quick` smoke run written to
+benchmarks/quick/): stability (STABILITY.md), calibration (CALIBRATION.md),
+experiment_design (EXPERIMENT.md), fit_cost (FIT_COST.md), model_error
+(MODEL_ERROR.md), sweep_bench (SWEEP.md), bicycle_cost (BICYCLE.md).
 """
 
 from __future__ import annotations

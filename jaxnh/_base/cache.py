@@ -47,11 +47,13 @@ __all__ = ["enable_compilation_cache", "cache_dir", "check_cache_dir", "MIN_COMP
 OFF_VALUES = ("", "0", "off", "none", "false", "no")
 MIN_COMPILE_TIME_SECS = 0.0
 """Programs compiled faster than this (s) are not written to the cache. 0: every
-program is written. Measured with benchmarks/cache_effect.py (a fresh process
+program is written. Measured once, by a script since removed (a fresh process
 importing jaxnh and running the README's variator, programs without host
 callbacks; medians of 3, 2 loaded cores): the first call after the import took
 2.1 s from a warm cache with JAX's default threshold of 1 s (1 entry written),
-1.9 s with 0.1 s (2 entries) and 1.4 s with 0 (17 entries), against 5.4–6.6 s cold."""
+1.9 s with 0.1 s (2 entries) and 1.4 s with 0 (17 entries), against 5.4–6.6 s cold.
+benchmarks/first_answer.py measures first answers cold and from a warm cache
+at this setting (not the other thresholds)."""
 
 JAX_DEFAULT_MIN_COMPILE_TIME = 1.0
 _active: str | None = None  # the folder this module gave JAX

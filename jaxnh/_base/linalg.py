@@ -2,8 +2,8 @@
 
 A mechanism has a handful of coordinates, and on a CPU a call to
 `jnp.linalg.solve` on a 2×2 matrix costs about as much as the whole
-right-hand side of the equations of motion (about 1 µs per call, measured on a
-2-core CPU; benchmarks/field_cost.py). The factorisations
+right-hand side of the equations of motion (about 1 µs per call, measured once
+on a 2-core CPU by a benchmark since removed). The factorisations
 here are written out element by element for static sizes up to
 `UNROLL_MAX`, so XLA fuses them into the vector field; larger systems fall
 back to LAPACK through `jax.scipy.linalg`.
