@@ -174,3 +174,19 @@ def test_step_limit_is_reported_not_garbage():
     sol = run(max_steps=5, throw=False)
     assert not bool(sol.success)
     assert "maximum number of solver steps" in sol.message
+
+
+def test_every_public_name_has_an_api_reference_entry():
+    """The strict docs build (docs/hooks.py) refuses a public name that no page documents with
+    `::: jaxnh.NAME`; the same check here fails in seconds instead of at the end of a docs build."""
+    import pathlib
+    import re
+
+    docs = pathlib.Path(__file__).resolve().parents[1] / "docs"
+    documented = {n for f in docs.rglob("*.md") for n in re.findall(r"^:::\s+([\w.]+)", f.read_text(), flags=re.M)}
+    missing = [
+        n
+        for n in nh.__all__
+        if f"jaxnh.{n}" not in documented and not any(d.startswith(f"jaxnh.{n}.") for d in documented)
+    ]
+    assert not missing, f"no docs page documents {missing}: add `::: jaxnh.NAME` to a page under docs/api/"

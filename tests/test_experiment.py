@@ -15,7 +15,17 @@ import pytest
 import jaxnh  # noqa: F401  (64-bit mode)
 from jaxnh._cli.design import main as design_main
 from jaxnh.design import fd_gradient
-from jaxnh.identify._experiment import ChannelNoise, design_loss, encoder_noise, experiment, input_spec, Limits, predict
+from jaxnh.identify._experiment import (
+    ChannelNoise,
+    design_loss,
+    encoder_noise,
+    evaluate_design,
+    experiment,
+    input_spec,
+    Limits,
+    predict,
+    StickLimit,
+)
 from jaxnh.models import variator as V
 from jaxnh.models.variator_fit import embedded_truth, variator_experiment
 from jaxnh.profiles import Bounded, Constant, Fourier
@@ -85,6 +95,27 @@ def test_constant_ratio_determines_only_the_reduced_inertia(constant_ratio):
     d = u["direction"]  # direction in (log J1, log J2) along which J1 + J2 U² is constant
     expected = np.array([J2 * U**2, -J1]) / (J2 * U**2)
     np.testing.assert_allclose([d["J2"] / d["J1"]], [expected[1] / expected[0]], rtol=1e-6)
+
+
+def test_stick_limit_is_the_friction_cone_of_the_contact_force(constant_ratio):
+    """With U21, M1, M2 constant the roller's multiplier (eq. 8) is constant,
+    λ = M2 − J2 U a with a = (M1 + U M2)/(J1 + J2 U²), N·m; its tangential force is λ/ρ with
+    ρ = r/U, so the stick limit's utilisation is |λ| U / (r μs N), and the penalty is zero below
+    99 % of the cone and positive above. The motion is quadratic in t, integrated to rounding at
+    rtol 1e-10: the utilisation agrees to 1e-8."""
+    exp, _, _ = constant_ratio
+    p = V.VariatorParams(J1, J2, Constant(U), M1, M2)
+    lam = M2 - J2 * U * (M1 + U * M2) / (J1 + J2 * U**2)
+    r = 0.05
+    need = abs(lam) * U / r  # the tangential force the roller needs, N
+    for capacity in (2.0 * need, 0.5 * need):
+        loss = design_loss(exp, "D", limits=Limits(stick=StickLimit(capacity=capacity, lever=V.ContactRadius(r))))
+        ev = evaluate_design(loss, p)
+        assert abs(ev["stick"] / (need / capacity) - 1) <= 1e-8
+        penalties = loss.terms(p)[1]
+        assert (float(penalties["stick"]) > 0) == (capacity < need)
+    with pytest.raises(ValueError, match="limits.stick"):
+        design_loss(exp, "D", limits=Limits(stick=StickLimit(capacity=-1.0, lever=V.ContactRadius(r))))
 
 
 # --- the embedded record's experiment ---------------------------------------------------------------------
@@ -180,6 +211,8 @@ def test_design_cli_refuses_bad_input(tmp_path, capsys):
         (["--lambda-max", "-1"], "--lambda-max"),
         (["--of", "J3"], "--of"),
         (["--energy-max", "nan"], "--energy-max"),
+        (["--lambda-max", "1", "--normal-force", "50"], "choose one limit"),
+        (["--mu-static", "0"], "--mu-static"),
     ):
         assert design_main(["--out", str(tmp_path / "ok"), *bad]) == 2
         assert msg in capsys.readouterr().err

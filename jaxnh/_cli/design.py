@@ -2,7 +2,8 @@
 
     jaxnh design [--out DIR] [--criterion A|D] [--of J1 ...] [--inputs M1 [M2]]
                  [--harmonics K] [--starts N] [--steps N] [--m1-max X] [--m2-max X]
-                 [--lambda-max X] [--energy-max E] [--power-max P] [--no-keep] [--seed S] [--quiet]
+                 [--normal-force N] [--mu-static MU] [--roller-radius R] [--lambda-max X]
+                 [--energy-max E] [--power-max P] [--no-keep] [--seed S] [--quiet]
 
 With the embedded record's set-up (6 s at 250 Hz, its two encoders, its
 nominal values J1, J2, U21(t), phi1'(0) = 4 rad/s) it
@@ -10,8 +11,13 @@ chooses the motor and load torques M1(t), M2(t) — Fourier series of period =
 the duration, bounded by |M1| ≤ --m1-max and |M2| ≤ --m2-max (default: the
 record's largest |M1| and |M2|) — that
 minimises the predicted variance of J1 (default `--criterion A --of J1`)
-while the contact force stays within |λ| ≤ --lambda-max (default: the largest
-|λ| of the embedded experiment) and, unless --no-keep, J2 and every U21 knot
+while the roller keeps rolling: the tangential force F = λ U21 / r it needs
+stays inside the static friction cone |F| ≤ μs N (its stick margin
+1 − |F|/(μs N) ≥ 0; λ is eq. (4)'s multiplier, N·m, and ρ = r / U21 the
+contact radius), with the pressing force --normal-force N (default: the
+smallest that keeps the embedded experiment rolling), --mu-static μs
+(default 0.3) and --roller-radius r (default 0.05 m); or, with --lambda-max,
+within a fixed |λ| bound instead. Unless --no-keep, J2 and every U21 knot
 are predicted no less precise than with the record's own input. Writes into
 DIR (default `jaxnh_design/`):
 
@@ -64,7 +70,15 @@ from jaxnh._cli.common import (
     use_agg,
 )
 from jaxnh._model.profiles import Bounded, Fourier, Sampled
-from jaxnh.identify._experiment import design_loss, evaluate_design, Limits, optimal_design, predict
+from jaxnh.identify._experiment import (
+    design_loss,
+    evaluate_design,
+    LIMIT_KEYS,
+    Limits,
+    optimal_design,
+    predict,
+    StickLimit,
+)
 from jaxnh.identify.data import load_default
 from jaxnh.identify.estimates import Z95
 from jaxnh.models import variator as V
@@ -74,6 +88,10 @@ from jaxnh.models.variator_fit import embedded_truth, variator_experiment
 __all__ = ["main", "build_parser"]
 
 OUTPUTS = {"csv": "designed_input.csv", "json": "design.json", "figure": "design.png"}
+DEFAULT_MU_STATIC = 0.3
+"""`--mu-static` when not given. With the default `--normal-force` the limit does not depend on it."""
+DEFAULT_ROLLER_RADIUS = 0.05
+"""`--roller-radius` when not given, m. With the default `--normal-force` the limit does not depend on it or on μs."""
 
 EPILOG = """\
 exit status:
@@ -144,11 +162,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="bound on |M2| when designed, N·m (default: the embedded record's largest |M2|)",
     )
     p.add_argument(
+        "--normal-force",
+        type=float,
+        default=None,
+        help="force pressing the roller, N: the design keeps the tangential force within μs N (default: the "
+        "smallest N that keeps the embedded experiment rolling)",
+    )
+    p.add_argument("--mu-static", type=float, default=None, help="static friction coefficient μs (default 0.3)")
+    p.add_argument("--roller-radius", type=float, default=None, help="roller radius r, m (default 0.05)")
+    p.add_argument(
         "--lambda-max",
         type=float,
         default=None,
-        help="contact-force limit |λ| (tangential force × roller radius), N·m (default: the largest "
-        "|λ| along the embedded experiment)",
+        help="instead of the friction cone, a fixed bound on |λ| (tangential force × contact radius), N·m",
     )
     p.add_argument(
         "--energy-max", type=float, default=None, help="energy the drives may deliver, J (default: no limit)"
@@ -171,7 +197,12 @@ def _check_args(a) -> None:
             raise ValueError(f"--{name}: must be ≥ 1; got {v}")
     if a.harmonics > 40:
         raise ValueError(f"--harmonics: at most 40 (a 250 Hz record over 6 s); got {a.harmonics}")
-    for name in ("m1_max", "m2_max", "lambda_max", "energy_max", "power_max", "learning_rate"):
+    friction = [n for n in ("normal_force", "mu_static", "roller_radius") if getattr(a, n) is not None]
+    if a.lambda_max is not None and friction:
+        raise ValueError(
+            f"--lambda-max replaces the friction cone; drop it or --{friction[0].replace('_', '-')} (choose one limit)"
+        )
+    for name in ("m1_max", "m2_max", "lambda_max", "energy_max", "power_max", "learning_rate", *friction):
         v = getattr(a, name)
         if v is not None and not (np.isfinite(v) and v > 0):
             raise ValueError(f"--{name.replace('_', '-')}: must be a finite number > 0; got {v}")
@@ -271,7 +302,19 @@ def _run(args, files) -> int:
         print("jaxnh design: the baseline experiment cannot be simulated", file=sys.stderr)
         return EXIT_FAILED
     assert base.max_multiplier is not None  # the variator's Appell solve records its multiplier
-    lam_max = args.lambda_max or float(np.max(base.max_multiplier))
+    mu_s = args.mu_static or DEFAULT_MU_STATIC
+    lever = V.ContactRadius(args.roller_radius or DEFAULT_ROLLER_RADIUS)
+    base_sol = exp.simulate(base_params, adjoint=None)
+    # the force the embedded experiment's roller needs, N: λ (N·m) over the contact radius ρ(t)
+    base_force = float(
+        np.max(
+            np.abs(np.asarray(base_sol.multipliers)[:, 0])
+            / np.asarray(jax.vmap(lambda t: lever(t, base_params))(base_sol.ts))
+        )
+    )
+    normal = args.normal_force or base_force / mu_s
+    lam_max = args.lambda_max
+    stick = None if lam_max is not None else StickLimit(capacity=mu_s * normal, lever=lever)
     P = exp.n_params
     keep = None
     if not args.no_keep:
@@ -281,7 +324,11 @@ def _run(args, files) -> int:
             for lab, r in zip(exp.labels[:P], rel)
             if lab.split("[")[0] not in args.of and lab not in args.of
         }
-    limits = Limits(multiplier=lam_max, energy=args.energy_max, power=args.power_max, std=keep or None)
+    limits = Limits(multiplier=lam_max, stick=stick, energy=args.energy_max, power=args.power_max, std=keep or None)
+    if stick is not None:
+        limit_text = f"|F| ≤ μs N = {mu_s:.3g} × {normal:.4g} N (roller r = {lever.radius:.3g} m)"
+    else:
+        limit_text = f"|λ| ≤ {lam_max:.4g} N·m"
     K = args.harmonics
     rng = np.random.default_rng(args.seed)
 
@@ -303,7 +350,7 @@ def _run(args, files) -> int:
         f"  designing {', '.join(args.inputs)}: {args.criterion}-criterion on {', '.join(args.of)}; "
         f"|M1| ≤ {m1_max:.4g} N·m"
         + (f", |M2| ≤ {m2_max:.4g} N·m" if "M2" in args.inputs else "")
-        + f", |λ| ≤ {lam_max:.4g} N·m"
+        + f", {limit_text}"
         + (", J2 and U21 knots no worse than the baseline" if keep else "")
         + f"; {args.starts} starts × {args.steps} Adam steps",
     )
@@ -333,9 +380,7 @@ def _run(args, files) -> int:
     loss = design_loss(exp, args.criterion, of=args.of, limits=limits)
 
     check = evaluate_design(loss, sampled)
-    feasible = check["status"] == 0 and all(
-        check[k] <= 1.0 for k in ("multiplier", "energy", "power", "std") if k in check
-    )
+    feasible = check["status"] == 0 and all(check[k] <= 1.0 for k in LIMIT_KEYS if k in check)
     ratio = {lab: _num(b / d) for lab, b, d in zip(exp.labels, base.std, des.std)}
     ts_band = np.linspace(t[0], t[-1], 241)
     u_b, s_b = base.profile_band("U21", ts_band)
@@ -368,7 +413,17 @@ def _run(args, files) -> int:
                 "M1_abs_max": m1_max,
                 "M2_abs_max": m2_max if "M2" in args.inputs else None,
                 "lambda_abs_max": lam_max,
-                "lambda_source": "given" if args.lambda_max else "largest |λ| along the embedded experiment",
+                "friction": None
+                if stick is None
+                else {
+                    "mu_static": mu_s,
+                    "normal_force_N": normal,
+                    "normal_force_source": "given"
+                    if args.normal_force
+                    else "smallest that keeps the embedded experiment rolling",
+                    "roller_radius_m": lever.radius,
+                    "limit": "|λ(t)| U21(t) / r ≤ μs N (stick margin ≥ 0)",
+                },
                 "energy_max": args.energy_max,
                 "power_max": args.power_max,
                 "keep_no_worse": sorted(keep) if keep else [],
@@ -388,7 +443,8 @@ def _run(args, files) -> int:
         "check": {
             "feasible": bool(feasible),
             "max_abs_lambda": _num(des.max_multiplier[0]),
-            "ratio_to_limits": {k: _num(check[k]) for k in ("multiplier", "energy", "power", "std") if k in check},
+            "ratio_to_limits": {k: _num(check[k]) for k in LIMIT_KEYS if k in check},
+            "stick_margin_min": None if stick is None else _num(1.0 - check["stick"]),
             "max_abs_M1": float(np.max(np.abs(m1))),
             "max_abs_M2": float(np.max(np.abs(m2))),
             "note": "predicted with the torques as written to the CSV (sampled, cubic spline between "
@@ -422,13 +478,17 @@ def _run(args, files) -> int:
         f.write(text)
     if "figure" in files:
         _compiling(args, f"the simulations drawn in {OUTPUTS['figure']}")
-        _figure(files["figure"], exp, base_params, sampled, base, des, ts_band, s_b, s_d, lam_max)
+        _figure(files["figure"], exp, base_params, sampled, base, des, ts_band, s_b, s_d, limits)
     _say(args, "")
     _say(args, _table(exp.labels, base, des))
     _say(
         args,
-        f"  contact force: max |λ| {out['check']['max_abs_lambda']:.4g} N·m (limit {lam_max:.4g}); "
-        f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
+        (
+            f"  contact: smallest stick margin {1.0 - float(check['stick']):.3g} (≥ 0: it keeps rolling); "
+            if stick is not None
+            else f"  contact force: max |λ| {out['check']['max_abs_lambda']:.4g} N·m (limit {lam_max:.4g}); "
+        )
+        + f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
         f"{'FEASIBLE' if feasible else 'NOT FEASIBLE: a limit is exceeded'}",
     )
     _say(args, f"  wrote {', '.join(files.values())} ({out['elapsed_s']:.0f} s)")
@@ -442,7 +502,7 @@ def _table(labels, base, des) -> str:
     return "\n".join(lines)
 
 
-def _figure(path, exp, base_params, des_params, base, des, ts_band, s_b, s_d, lam_max):
+def _figure(path, exp, base_params, des_params, base, des, ts_band, s_b, s_d, limits: Limits):
     import matplotlib.pyplot as plt  # optional dependency (the plot extra); the backend: main() chose Agg
 
     t = np.asarray(exp.ts)
@@ -458,11 +518,20 @@ def _figure(path, exp, base_params, des_params, base, des, ts_band, s_b, s_d, la
     ax[0].set_title("Inputs")
     ax[1].plot(t, np.asarray(sol_b.multipliers[:, 0]), "--", color="C2", label="λ baseline")
     ax[1].plot(t, np.asarray(sol_d.multipliers[:, 0]), "-", color="C2", label="λ designed")
-    for s in (1, -1):
-        ax[1].axhline(s * lam_max, color="k", lw=0.8, ls=":")
+    if limits.stick is not None:  # what friction holds, as a multiplier: ±μs N ρ(t) for each input's ratio law
+        st = limits.stick
+        for p, st_ in ((base_params, "--"), (des_params, "-")):
+            lim = st.capacity * np.asarray(jax.vmap(lambda t: st.lever(t, p))(tj))
+            ax[1].plot(t, lim, st_, color="k", lw=0.8)
+            ax[1].plot(t, -lim, st_, color="k", lw=0.8)
+        title = "Contact force (black: ±μs N ρ(t), what friction holds)"
+    else:
+        for s in (1, -1):
+            ax[1].axhline(s * float(limits.multiplier or np.nan), color="k", lw=0.8, ls=":")
+        title = f"Contact force (limit ±{float(limits.multiplier or np.nan):.3g} N·m dotted)"
     ax[1].set_ylabel("contact force × radius λ, N·m")
     ax[1].legend(fontsize=8)
-    ax[1].set_title(f"Contact force (limit ±{lam_max:.3g} N·m dotted)")
+    ax[1].set_title(title)
     ax[2].semilogy(ts_band, Z95 * s_b, "--", color="C3", label="baseline")
     ax[2].semilogy(ts_band, Z95 * s_d, "-", color="C3", label="designed")
     ax[2].set_ylabel("95 % half-width of U21(t)")

@@ -16,7 +16,9 @@ accelerations only when recorded.
 
 Which velocities are independent (the partition, `jaxnh._equations.split`):
 
-* `Appell(independent=(0,))` fixes it; the state is (q, v). A run in which the
+* `Appell(independent=(0,))` fixes it; the state is y = [q, v] (one flat
+  vector: diffrax's stages and error norm then cost one operation per
+  step, not one per part). A run in which the
   dependent block becomes singular fails with `STATUS.singular_split`.
 * `Appell()` (the default) chooses it inside the compiled program from the
   constraint matrix, its columns scaled by the mass matrix
@@ -25,8 +27,8 @@ Which velocities are independent (the partition, `jaxnh._equations.split`):
   re-chooses it before any step at which the dependent block has become
   ill-conditioned (its volume below `SWITCH_BELOW` of the best block's);
   a step during which the block's determinant changes sign is rejected and
-  retried shorter. The state is (q, v, partition), the partition carried as
-  a float vector of indices that the step-size control ignores.
+  retried shorter. The state is y = [q, v, partition], the partition
+  carried as a float vector of s indices that the step-size control ignores.
 """
 
 from __future__ import annotations
@@ -90,24 +92,30 @@ class Appell(Formulation):
         """Whether the partition is data carried in the state."""
         return self.independent is None and self.m > 0
 
+    def parts(self, y):
+        """(q (s,), v (k,), partition code (s,) or None) of a state y = [q, v, code]."""
+        s, k = self.s, self.s - self.m
+        return y[:s], y[s : s + k], (y[s + k :] if self.traced else None)
+
     def partition(self, y):
         """The partition in use for the state y."""
         if not self.traced:
             return self.independent if self.independent is not None else tuple(range(self.s))
-        return jnp.round(y[2]).astype(jnp.int32)
+        return jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32)
 
     def state(self, q, qd, t, params):
         if not self.traced:
-            return (q, self.split.independent_of(qd, self.partition(None)))
+            return jnp.concatenate([q, self.split.independent_of(qd, self.partition(None))])
         perm, _ = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
-        return (q, select(qd, perm, self.s - self.m)[0], perm.astype(q.dtype))
+        return jnp.concatenate([q, select(qd, perm, self.s - self.m)[0], perm.astype(q.dtype)])
 
     def unpack(self, y, t, params):
-        q, v = y[0], y[1]
+        q, v, _ = self.parts(y)
         return q, self.split.velocities(q, v, t, params, self.partition(y))
 
     def error_mask(self):
-        return (1.0, 1.0, 0.0) if self.traced else None
+        n = self.s + self.s - self.m
+        return (1.0,) * n + (0.0,) * self.s if self.traced else None
 
     def _independent_accelerations(self, q, v, t, params, part):
         mech = self.bound_mech
@@ -137,9 +145,9 @@ class Appell(Formulation):
         return qdd, lam
 
     def vector_field(self, t, y, params):
-        q, v = y[0], y[1]
+        q, v, code = self.parts(y)
         qd, _, vd = self._independent_accelerations(q, v, t, params, self.partition(y))
-        return (qd, vd, jnp.zeros_like(y[2])) if self.traced else (qd, vd)
+        return jnp.concatenate([qd, vd] + ([jnp.zeros_like(code)] if code is not None else [])).astype(y.dtype)
 
     def step_maps(self):
         if self.m == 0:
@@ -179,14 +187,14 @@ class _Partitioning(StepMaps):
         if not self.switch:
             return y, jnp.asarray(False)
         f, params, ok = args
-        q, v, code = y
+        q, v, code = f.parts(y)
         perm = f.partition(y)
         qd = f.split.velocities(q, v, t, params, perm)
         ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
         switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
         new = jnp.where(switch, best, perm)
         v_new = jnp.where(switch, select(qd, new, f.s - f.m)[0], v)
-        return (q, v_new, new.astype(code.dtype)), switch
+        return jnp.concatenate([q, v_new, new.astype(code.dtype)]), switch
 
     def post(self, t0, y0, t1, y1, args):
         f, params, ok = args
@@ -194,8 +202,9 @@ class _Partitioning(StepMaps):
         det = []
         for y, t in ((y0, t0), (y1, t1)):
             # A = ∂c/∂qd does not depend on qd for linear constraints: skip the velocity solve
-            qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(y[0])
-            det.append(block_determinant(constraint_matrix(f.mech, y[0], qd, t, params), part, f.s - f.m))
+            q = f.parts(y)[0]
+            qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(q)
+            det.append(block_determinant(constraint_matrix(f.mech, q, qd, t, params), part, f.s - f.m))
         # after a failed initial check the state is a zero stand-in under a zero field:
         # nothing to watch, and the solve must end at once rather than reject every step
         crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok

@@ -66,7 +66,9 @@ class Formulation(eqx.Module):
 
     @abc.abstractmethod
     def state(self, q, qd, t, params) -> Any:
-        """Integrated state y from coordinates q (s,) and velocities qd (s,)."""
+        """Integrated state y from coordinates q (s,) and velocities qd (s,): one flat
+        vector (an integrator's stages and error norm then cost one operation each, where a
+        tuple of parts costs one per part)."""
 
     @abc.abstractmethod
     def unpack(self, y, t, params) -> tuple[jax.Array, jax.Array]:
@@ -81,8 +83,8 @@ class Formulation(eqx.Module):
         """dy/dt for the integrated state y."""
 
     def error_mask(self) -> Optional[tuple[float, ...]]:
-        """Static weights, one per leaf of the state: 1.0 for components in the step-size
-        error control, 0.0 for bookkeeping; None for all."""
+        """Static weights, one per entry of the (flat) state: 1.0 for components in the
+        step-size error control, 0.0 for bookkeeping; None for all."""
         return None
 
     def step_maps(self) -> Optional[StepMaps]:

@@ -40,7 +40,7 @@ from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
 
 
 class Lagrange(Formulation):
-    """Lagrange's equations of the first kind with multipliers; state (q, qd).
+    """Lagrange's equations of the first kind with multipliers; state y = [q, qd] (one flat vector).
 
     Arguments:
         baumgarte: optional constraint stabilisation rate α, 1/s (a traced array
@@ -56,14 +56,14 @@ class Lagrange(Formulation):
     name = "lagrange"
 
     def state(self, q, qd, t, params):
-        return (q, qd)
+        return jnp.concatenate([q, qd])
 
     def unpack(self, y, t, params):
+        q, qd = y[: self.s], y[self.s :]
         if self.projection and self.m:
             # reports between steps come from the dense output, which is not projected
-
-            return y[0], project_velocities(self.bound_mech, y[0], y[1], t, params)
-        return y
+            return q, project_velocities(self.bound_mech, q, qd, t, params)
+        return q, qd
 
     def accelerations(self, q, qd, t, params, multipliers: bool = False):
         mech = self.bound_mech
@@ -82,9 +82,9 @@ class Lagrange(Formulation):
         return qdd, (lam if multipliers else None)
 
     def vector_field(self, t, y, params):
-        q, qd = y
+        q, qd = y[: self.s], y[self.s :]
         qdd, _ = self.accelerations(q, qd, t, params)
-        return (qd, qdd)
+        return jnp.concatenate([qd, qdd]).astype(y.dtype)
 
     def step_maps(self):
         return _Projection() if self.projection and self.m else None
@@ -95,6 +95,8 @@ class _Projection(StepMaps):
     The solve's args are `(formulation, params, ok)`."""
 
     def post(self, t0, y0, t1, y1, args):
-        q, qd = y1
+        s = args[0].s
+        q, qd = y1[:s], y1[s:]
         qd_new = project_velocities(args[0].mech, q, qd, t1, args[1])
-        return (q, qd_new), (jnp.zeros_like(q), qd_new - qd), jnp.asarray(False), jnp.asarray(False)
+        y_new = jnp.concatenate([q, qd_new])
+        return y_new, y_new - y1, jnp.asarray(False), jnp.asarray(False)

@@ -130,7 +130,8 @@ def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
     if isinstance(form, Appell) and form.m and form.bound_mech.nonlinear_constraints:
         # the dependent velocities of constraints nonlinear in them could not be solved (NaN from
         # jaxnh._equations.split: Newton's method did not converge) where the solve stopped
-        unsolved = ~jnp.all(jnp.isfinite(form.unpack(y, t, params)[1])) & jnp.all(jnp.isfinite(y[0]))
+        q_y, qd_y = form.unpack(y, t, params)
+        unsolved = ~jnp.all(jnp.isfinite(qd_y)) & jnp.all(jnp.isfinite(q_y))
         status = STATUS.where(stalled & finite & unsolved, STATUS.nonlinear_constraints_unsolved, status)
         stalled = stalled & ~unsolved
     if isinstance(form, Appell) and form.m:

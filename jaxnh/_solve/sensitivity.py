@@ -110,10 +110,16 @@ def _masked_rms(err, mask):
 
 
 def _flat_mask(error_mask, y0):
-    """Per-element weights (n,) from per-leaf weights of y0 (None: all ones)."""
+    """Per-element weights (n,) of y0 from a formulation's error mask: one weight per entry of
+    the flat state (None: all ones). A state augmented with sensitivity columns has the same
+    weights in each column."""
     leaves = jtu.tree_leaves(y0)
-    weights = (1.0,) * len(leaves) if error_mask is None else error_mask
-    return jnp.concatenate([jnp.full((x.size,), w, jnp.result_type(x)) for x, w in zip(leaves, weights)])
+    size = sum(x.size for x in leaves)
+    dtype = jnp.result_type(*leaves)
+    if error_mask is None:
+        return jnp.ones((size,), dtype)
+    w = jnp.asarray(error_mask, dtype)
+    return jnp.tile(w, size // w.shape[0])
 
 
 def diffrax_solve(
@@ -297,8 +303,7 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
         return jax.flatten_util.ravel_pytree((fy, jax.vmap(lin)(S, E_)))[0].astype(z.dtype)
 
     mask = _flat_mask(error_mask, y0).astype(dtype)
-    # S travels as ravel_pytree of its leaves, each (P, *leaf.shape): leaf by leaf, column-major
-    # within a leaf, so each leaf's weight is repeated over its P columns (not the mask of y tiled P times)
+    # S travels as ravel_pytree of its one leaf (P, n): column after column, each weighted like y
     mask_S = _flat_mask(error_mask, S0).astype(dtype)
 
     def norm(e):

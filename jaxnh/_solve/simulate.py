@@ -323,6 +323,13 @@ def simulate(
     declared = declared_breakpoints(params, q0.dtype)
     if declared is not None:
         step_ts = declared if step_ts is None else jnp.sort(jnp.concatenate([_as_times(step_ts, q0.dtype), declared]))
+    if _coarse_interpolant(solver) and (
+        stepsize_controller is None or isinstance(stepsize_controller, diffrax.PIDController)
+    ):
+        # e.g. Kvaerno5: a fifth-order method whose dense output is a third-order Hermite
+        # interpolant; between its long (implicit) steps a report would carry the interpolant's
+        # error, far above the tolerance (4.5e-5 relative at rtol 1e-9): end a step at every report
+        step_ts = ts if step_ts is None else jnp.sort(jnp.concatenate([_as_times(step_ts, q0.dtype), ts]))
     if step_ts is not None and stepsize_controller is not None:
         if isinstance(stepsize_controller, diffrax.PIDController):
             stepsize_controller = diffrax.ClipStepSizeController(
@@ -394,6 +401,21 @@ def simulate(
 
 
 @functools.lru_cache(maxsize=64)
+def _coarse_interpolant(solver) -> bool:
+    """Whether `solver` reports between its steps by an interpolant of lower order than its own
+    (diffrax's third-order Hermite for a method of order > 3: the implicit Kvaerno4/5)."""
+    if solver is None:
+        return False
+    try:
+        order = solver.order(None)
+    except Exception:  # a solver whose order depends on its terms: no claim made
+        return False
+    interp = solver.interpolation_cls
+    interp = getattr(interp, "__self__", interp)  # diffrax gives a classmethod constructor for some
+    hermite = isinstance(interp, type) and issubclass(interp, diffrax.ThirdOrderHermitePolynomialInterpolation)
+    return hermite and order > 3
+
+
 def _pid(rtol, atol, dtype):
     # NumPy scalars: data to the compiled program (not a static constant), and safe to cache
     # (a jnp array made while tracing would be a tracer)
@@ -573,10 +595,17 @@ def _run_traced(
         y0 = jax.tree_util.tree_map(lambda x: raise_in_graph(x, pre), y0)
     if solver is None:
         solver = default_solver(rtol, vector_field_operations(form, t0, y0, params), form.name)
-    diagnose = saveat is None  # with the default saving, keep the last state reached for a failure's diagnosis
-    if diagnose:  # reports at ts, and separately the state at the end (or where a failed solve stopped)
+    dense = saveat is not None and bool(saveat.dense)
+    # a progress meter, like dense output and events, needs a diffrax adjoint
+    adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None or progress_meter is not None)
+    # with the default saving, keep the last state reached for a failure's diagnosis: reports at ts,
+    # and separately the state at the end (or where a failed solve stopped). BacksolveAdjoint
+    # cannot save `subs`: it gets the reports alone, and a failure is diagnosed at the last one.
+    diagnose = saveat is None and not isinstance(adjoint, diffrax.BacksolveAdjoint)
+    if diagnose:
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=tsr), diffrax.SubSaveAt(t1=True)])
-    dense = bool(saveat.dense)
+    elif saveat is None:
+        saveat = diffrax.SaveAt(ts=tsr)
     if event is not None:
         # diffrax 0.7.0 (the oldest supported) has no `direction` on its Event; 0.7.2 has
         direction = {"direction": event.direction} if hasattr(event, "direction") else {}
@@ -595,7 +624,6 @@ def _run_traced(
             root_finder=root_finder,
             **direction,
         )
-    adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None)
     args = (form, params, ok)
     maps = form.step_maps()
     kw = dict(t0=t0r, t1=tsr[-1], max_steps=max_steps, dt0=dt0, error_mask=form.error_mask())

@@ -109,6 +109,16 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
     def term_structure(self):
         return self.solver.term_structure
 
+    # An implicit wrapped solver makes this one implicit too (diffrax forwards `isinstance` through
+    # `AbstractWrappedSolver`), and diffrax then reads and sets the root finder's tolerances on it.
+    @property
+    def root_finder(self):
+        return self.solver.root_finder  # pyright: ignore[reportAttributeAccessIssue]
+
+    @property
+    def root_find_max_steps(self):
+        return self.solver.root_find_max_steps  # pyright: ignore[reportAttributeAccessIssue]
+
     @property
     def interpolation_cls(self):  # pyright: ignore
         return self.solver.interpolation_cls

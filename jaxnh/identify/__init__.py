@@ -33,6 +33,7 @@ from jaxnh.identify._experiment import (
     optimal_design,
     predict,
     Prediction,
+    StickLimit,
 )
 from jaxnh.identify._fit import fit, FitResult, prepare
 from jaxnh.identify.data import load_default, MIN_SAMPLES, noise_level, read_csv, Record, write_csv
@@ -65,6 +66,7 @@ __all__ = [
     "optimal_design",
     "DesignResult",
     "Limits",
+    "StickLimit",
     "ChannelNoise",
     "encoder_noise",
 ]

@@ -65,6 +65,9 @@ __all__ = [
     "Prediction",
     "predict",
     "Limits",
+    "StickLimit",
+    "stick_utilisation",
+    "LIMIT_KEYS",
     "DesignResult",
     "optimal_design",
     "design_loss",
@@ -411,6 +414,32 @@ def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Predicti
 
 
 @dataclasses.dataclass(frozen=True)
+class StickLimit:
+    """A friction contact's static cone as a limit: along the motion, the force that
+    constraint row `row` needs must stay within what friction can hold,
+
+        |λ_row(t)| ≤ μs N · lever(t, params),
+
+    i.e. its stick margin `1 − |λ_row| / (μs N lever)` must stay ≥ 0 (above, the
+    contact would slip: `jaxnh.FrictionContact`).
+
+    Attributes:
+        capacity: μs N, the largest tangential force the contact holds, N.
+        lever: `lever(t, params) -> scalar`, the factor that turns the tangential
+            force into the row's multiplier: 1 for a row written as a slip velocity
+            (m/s; its multiplier is the force, N), the contact radius (m) for a row
+            written as an angular rate (rad/s; its multiplier is a torque, N·m),
+            e.g. ρ(t) = r / U21(t) for the variator's eq. (4). Must be hashable
+            (a module-level function or a frozen dataclass).
+        row: the constraint row (index into the multipliers).
+    """
+
+    capacity: float
+    lever: Any
+    row: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
 class Limits:
     """What a test rig allows; None = no limit.
 
@@ -418,6 +447,8 @@ class Limits:
         multiplier: max |λ| of every constraint multiplier along the motion (its
             units; for the variator the tangential contact force times the
             roller radius, N·m: above it the friction drive slips).
+        stick: a friction contact's static cone (`StickLimit`): the utilisation
+            |λ|/(μs N lever) of its row must stay ≤ 1 along the motion.
         energy: max energy drawn from the drives over the experiment, J:
             `∫ Σ_i max(Q_i q_i', 0) dt` over the generalized forces Q.
         power: max drawn power `Σ_i max(Q_i q_i', 0)` at any sample, W.
@@ -430,6 +461,17 @@ class Limits:
     energy: Optional[float] = None
     power: Optional[float] = None
     std: Optional[dict] = None
+    stick: Optional[StickLimit] = None
+
+
+def stick_utilisation(stick: StickLimit, params, sol):
+    """|λ_row(t)| / (μs N lever(t, params)) at the report times: ≤ 1 while the contact can hold."""
+    lever = jax.vmap(lambda t: stick.lever(t, params))(sol.ts)
+    return jnp.abs(sol.multipliers[:, stick.row]) / (stick.capacity * lever)
+
+
+LIMIT_KEYS = ("multiplier", "stick", "energy", "power", "std")
+"""The limits `evaluate_design` reports, each as the ratio of the largest value to the limit."""
 
 
 def _hinge2(x):
@@ -473,6 +515,8 @@ def _criterion_terms(
     p = exp.problem.par.unpack(exp.theta(params)[: exp.n_params])
     if limits.multiplier is not None and sol.multipliers is not None:
         pen["multiplier"] = _hinge2(jnp.abs(sol.multipliers) / (margin * limits.multiplier))
+    if limits.stick is not None and sol.multipliers is not None:
+        pen["stick"] = _hinge2(stick_utilisation(limits.stick, p, sol) / margin)
     if limits.energy is not None or limits.power is not None:
         pw = _positive_power(exp, p, sol)
         if limits.energy is not None:
@@ -540,6 +584,13 @@ def design_loss(
         v = getattr(limits, k)
         if v is not None and not (np.isfinite(v) and v > 0):
             raise ValueError(f"limits.{k} must be a finite number > 0; got {v!r}")
+    if limits.stick is not None:
+        st = limits.stick
+        if not (np.isfinite(st.capacity) and st.capacity > 0) or not callable(st.lever):
+            raise ValueError(
+                "limits.stick: capacity (μs N, N) must be a finite number > 0 and lever a function (t, params); "
+                f"got {st!r}"
+            )
     of_idx = _indices(exp.labels, of, exp.n_params)
     std_idx, std_max = (), ()
     if limits.std:
@@ -585,6 +636,9 @@ def _evaluate(loss: _Loss, params):
     lim = loss.limits
     if lim.multiplier is not None and sol.multipliers is not None:
         out["multiplier"] = jnp.max(jnp.abs(sol.multipliers)) / lim.multiplier
+    if lim.stick is not None and sol.multipliers is not None:
+        p = loss.exp.problem.par.unpack(loss.exp.theta(params)[: loss.exp.n_params])
+        out["stick"] = jnp.max(stick_utilisation(lim.stick, p, sol))
     if lim.energy is not None or lim.power is not None:
         p = loss.exp.problem.par.unpack(loss.exp.theta(params)[: loss.exp.n_params])
         pw = _positive_power(loss.exp, p, sol)
@@ -665,7 +719,7 @@ def optimal_design(
 
     def accept(p):
         ev = evaluate_design(loss, p)
-        ok = ev["status"] == 0 and all(ev[k] <= 1.0 for k in ("multiplier", "energy", "power", "std") if k in ev)
+        ok = ev["status"] == 0 and all(ev[k] <= 1.0 for k in LIMIT_KEYS if k in ev)
         return ok, ev
 
     # Adam with a cosine decay of the step to 5 % at the end: large moves first, then settling on the limits
@@ -682,7 +736,7 @@ def optimal_design(
     )
     run = runs[k_best]
     ev = run["evaluation"]
-    viol = {k: ev[k] for k in ("multiplier", "energy", "power", "std") if k in ev}
+    viol = {k: ev[k] for k in LIMIT_KEYS if k in ev}
     starts_out = [
         {
             "value": r["evaluation"]["value"],
