@@ -10,7 +10,7 @@ import numpy as np
 from . import common as C
 
 
-STUDIES = ("headline", "size", "first_answer", "precision")
+STUDIES = ("headline", "size", "first_answer", "precision", "friction")
 RECORDS = {  # reports their own scripts write (not run by run_all); each says its command and revision at its top
     "RELIABILITY.md": "no silent wrong answers: outcomes of many fuzzed cases (`python -m benchmarks.reliability`)",
     "STABILITY.md": "long runs, constraint drift, float32 (`python -m benchmarks.stability`)",
@@ -407,6 +407,63 @@ def precision(R) -> tuple[list, list]:
     return targets, out
 
 
+def friction(R) -> tuple[list, list]:
+    rows = R["rows"]
+    rolling = rows["rolling"]
+    cases = [k for k in rows if k != "rolling"]
+    targets = [
+        [
+            "friction contacts: a scene without them",
+            "pays nothing",
+            "dispatched before tracing: the rolling solve's program is the one without the feature "
+            f"(program digest `{rolling.get('program_sha256', '?')}`)",
+            e(rolling.get("error")),
+            "—",
+        ],
+        [
+            "friction solve with k transitions / rolling solve, per call",
+            "—",
+            ", ".join(f"k = {rows[k]['transitions']}: {rows[k]['over_rolling']:.2f}×" for k in cases),
+            "slip onset " + ", ".join(e(rows[k].get("error")) for k in cases if "error" in rows[k]),
+            "—",
+        ],
+    ]
+    out = [
+        "## Friction-held contacts",
+        "",
+        "The variator of `examples/variator_slip.py` (ratio 1 → 2 in 0.5 s at 100 rad/s, the roller held by a "
+        f"`FrictionContact`), simulate's defaults, 1 s, {R.get('report_times', '?')} report times "
+        "(`python -m benchmarks.friction`). *rolling*: the same mechanism without its contact. Errors: the slip "
+        "onset against its closed-form condition; for the rolling solve, φ1' against its closed form.",
+        "",
+    ]
+    body = []
+    for k, r in rows.items():
+        body.append(
+            [
+                k,
+                str(r.get("transitions", 0)),
+                str(r.get("segments", 1)),
+                str(r.get("steps", "")),
+                t(r["cpu"]),
+                f"{r['over_rolling']:.2f}×",
+                e(r.get("error")),
+            ]
+        )
+    out += table(["case", "transitions", "segments", "steps", "CPU per call", "/ rolling", "error"], body)
+    first = R.get("first") or {}
+    if first:
+        out += [
+            "First call in a fresh process (import, trace, compile, run), wall and CPU time:",
+            "",
+        ]
+        out += table(
+            ["case", "import", "first call", "whole process, CPU"],
+            [[k, t(v.get("import")), t(v.get("first_call")), t(v.get("cpu"))] for k, v in first.items()],
+        )
+    return targets, out
+
+
 def _interp(points, err):
     """Time at `err` on a sorted (error, time) curve by log-log interpolation, None outside it."""
     pts = [(a, b) for a, b in points if a > 0 and np.isfinite(a)]
@@ -469,7 +526,14 @@ def figures(results):
 def main():
     results = {s: r for s in STUDIES if (r := C.load(s)) is not None}
     targets, sections = [], []
-    for name, fn in (("headline", headline), ("size", size), ("first_answer", first_answer), ("precision", precision)):
+    studies = (
+        ("headline", headline),
+        ("size", size),
+        ("first_answer", first_answer),
+        ("precision", precision),
+        ("friction", friction),
+    )
+    for name, fn in studies:
         if name in results:
             tg, sec = fn(results[name])[:2]
             targets += tg

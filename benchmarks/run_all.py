@@ -16,6 +16,8 @@ Studies (each in its own process; one failure does not stop the rest):
 * first_answer — fresh processes, cold and with the compilation cache, against
   hand-written diffrax programs.
 * precision — work–precision of the rolling ball, Appell against Lagrange.
+* friction — what friction-held contacts cost: a scene without them, and
+  solves with 0, 1 and 2 transitions.
 
 Not run here: studies that write their own report beside RESULTS.md (each run as
 `python -m benchmarks.<name>`, with a `--quick` smoke run written to
@@ -35,7 +37,7 @@ import time
 from . import common as C
 
 
-STUDIES = ["headline", "size", "first_answer", "precision"]
+STUDIES = ["headline", "size", "first_answer", "precision", "friction"]
 EXTRA = ["reliability"]  # writes RELIABILITY.md itself
 
 

@@ -1109,8 +1109,8 @@ def simulate_friction(
     if independent is None and isinstance(form, Appell):
         independent = mech.independent
     f = _Friction(mech, s, m, "lagrange" if isinstance(form, Lagrange) else "appell", independent)
-    if solver is None:
-        solver = diffrax.Dopri8() if rtol < 1e-5 else diffrax.Tsit5()
+    if solver is None:  # (simulate passes its default solver)
+        solver = diffrax.Tsit5()
     traced = is_traced(params, q0, qd0, ts)
     sol = _run(
         f,

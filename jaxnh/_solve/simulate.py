@@ -364,7 +364,8 @@ def simulate(
         raise ValueError(f"dt0={dt0!r}: the initial step must be positive (s), or None for an automatic choice")
     if mech.contacts:  # friction-held rows: the segmented solve (jaxnh/_solve/friction.py)
         return simulate_friction(
-            mech, form, params, q0, qd0, ts, solver=solver, stepsize_controller=stepsize_controller, record=record,
+            mech, form, params, q0, qd0, ts, stepsize_controller=stepsize_controller, record=record,
+            solver=default_solver(float(rtol), None, form.name) if solver is None else solver,
             saveat=saveat, event=event, progress_meter=progress_meter, adjoint=adjoint, max_steps=max_steps, dt0=dt0,
             throw=throw, rtol=float(rtol), max_transitions=max_transitions,
         )  # fmt: skip
