@@ -1,6 +1,7 @@
-"""Data out: a `Solution` as a pandas DataFrame, a `FitResult` as JSON-ready data.
+"""Data out: a `Solution` as a pandas DataFrame or an xarray Dataset, a `FitResult` as JSON-ready data.
 
-pandas is optional: it is imported only inside `solution_to_dataframe`.
+pandas and xarray are optional (the `data` extra): each is imported only inside
+the function that needs it (`solution_to_dataframe`, `solution_to_xarray`).
 """
 
 from __future__ import annotations
@@ -11,7 +12,14 @@ from typing import Any
 import numpy as np
 
 
-__all__ = ["solution_to_dataframe", "fit_result_to_dict", "json_safe", "fit_status", "FIT_STATUSES"]
+__all__ = [
+    "solution_to_dataframe",
+    "solution_to_xarray",
+    "fit_result_to_dict",
+    "json_safe",
+    "fit_status",
+    "FIT_STATUSES",
+]
 
 FIT_STATUSES = ("fitted", "not_converged", "not_identifiable", "simulation_failed", "non_finite")
 
@@ -218,3 +226,92 @@ def solution_to_dataframe(sol):
     if status is not None:
         df.attrs["message"] = "success" if df.attrs["success"] else "some batch elements failed (see 'success')"
     return df
+
+
+# attrs of the Dataset's variables: "units" is exact where one unit applies (t, energy); the coordinates,
+# and with them the velocities, multipliers and constraint values, have each mechanism's own units
+_XARRAY_ATTRS = {
+    "t": {"long_name": "time", "units": "s"},
+    "q": {"long_name": "generalized coordinates", "units": "each coordinate's own (rad for an angle, m for a length)"},
+    "qd": {"long_name": "generalized velocities", "units": "each coordinate's own per second (rad/s, m/s)"},
+    "energy": {"long_name": "total energy T + V", "units": "J"},
+    "multipliers": {
+        "long_name": "constraint multipliers λ (constraint forces Aᵀλ, A = ∂c/∂qd)",
+        "units": "generalized force per unit of the constraint's coefficient (N·m for the variator)",
+    },
+    "residual": {
+        "long_name": "constraint values c(q, qd, t), zero for an exact solution",
+        "units": "the constraint's own",
+    },
+    "success": {"long_name": "whether the solve reached its end"},
+}
+
+
+def solution_to_xarray(sol):
+    """A `Solution` as an `xarray.Dataset`: `Solution.to_xarray`, see there."""
+    try:
+        import xarray as xr
+    except ImportError:
+        raise ImportError(
+            "Solution.to_xarray needs xarray (pip install xarray, or the data extra: pip install 'jaxnh[data]'); "
+            "the arrays are sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual"
+        ) from None
+    try:
+        q = np.asarray(sol.q)
+        qd = np.asarray(sol.qd)
+        ts = np.asarray(sol.ts)
+    except Exception as e:  # a tracer: inside jit/vmap
+        raise ValueError(
+            "to_xarray: the Solution holds traced values (inside jax.jit/vmap); call it on the "
+            f"returned Solution outside the transformation ({type(e).__name__})"
+        ) from None
+    if q.ndim < 2:
+        raise ValueError(f"to_xarray: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
+    batch_shape = q.shape[:-2]
+    n, s = q.shape[-2:]
+    nb = int(np.prod(batch_shape))
+    lead = ("batch",) if batch_shape else ()
+
+    def shaped(v, tail, label):
+        v = np.asarray(v)
+        if v.shape != batch_shape + tail:
+            raise ValueError(f"to_xarray: sol.{label} has shape {v.shape}, inconsistent with sol.q {q.shape}")
+        return v.reshape((nb,) + tail) if batch_shape else v
+
+    if ts.shape not in ((n,), batch_shape + (n,)):
+        raise ValueError(f"to_xarray: sol.ts has shape {ts.shape}, inconsistent with sol.q {q.shape}")
+    rows = np.broadcast_to(ts, batch_shape + (n,)).reshape(-1, n)
+    if not all(np.array_equal(r, rows[0], equal_nan=True) for r in rows[1:]):
+        raise ValueError(
+            "to_xarray: the batch elements were reported at different times (sol.ts differs between them, "
+            "e.g. an event stopped some runs early), so they share no time axis; convert the elements one at "
+            "a time, or use to_dataframe (a long table)"
+        )
+    data = {
+        "q": (lead + ("t", "coordinate"), shaped(q, (n, s), "q")),
+        "qd": (lead + ("t", "coordinate"), shaped(qd, (n, s), "qd")),
+    }
+    for name, dims in (("energy", ("t",)), ("multipliers", ("t", "constraint")), ("residual", ("t", "constraint"))):
+        v = getattr(sol, name, None)
+        if v is not None:
+            v = np.asarray(v)
+            data[name] = (lead + dims, shaped(v, (n,) + v.shape[len(batch_shape) + 1 :], name))
+    if "multipliers" in data and "residual" in data and data["multipliers"][1].shape != data["residual"][1].shape:
+        # one multiplier per constraint row is the rule; should they differ, they cannot share a dimension
+        data["multipliers"] = (lead + ("t", "multiplier"), data["multipliers"][1])
+    success = np.asarray(getattr(sol, "success", True))
+    if success.shape != batch_shape:
+        success = np.full(batch_shape, bool(np.all(success)))
+    data["success"] = (lead, success.reshape(nb) if batch_shape else success)
+    coords: dict[str, Any] = {"t": ("t", rows[0].astype(float)), "coordinate": ("coordinate", list(_names(sol, s)))}
+    if batch_shape:
+        coords["batch"] = ("batch", np.arange(nb))
+    ds = xr.Dataset({k: (dims, v, _XARRAY_ATTRS[k]) for k, (dims, v) in data.items()}, coords=coords)
+    ds["t"].attrs.update(_XARRAY_ATTRS["t"])
+    try:
+        ds.attrs["message"] = str(sol.message)
+    except Exception:
+        ds.attrs["message"] = ""
+    if batch_shape:
+        ds.attrs["batch_shape"] = [int(x) for x in batch_shape]
+    return ds

@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from jaxnh._base.compat import status_code, status_code_int
-from jaxnh._base.dataframe import solution_to_dataframe
+from jaxnh._base.dataframe import solution_to_dataframe, solution_to_xarray
 from jaxnh._base.status import describe, STATUS
 
 
@@ -124,3 +124,30 @@ class Solution(eqx.Module):
     def to_dataframe(self):
         """The motion as a pandas DataFrame (needs pandas)."""
         return solution_to_dataframe(self)
+
+    def to_xarray(self):
+        """The motion as an `xarray.Dataset` (needs xarray: the `data` extra).
+
+        Dimensions "t" (the report times `ts`, s) and "coordinate" (labelled by
+        `names`, e.g. "phi1", "phi2"); data variables `q` and `qd` ("t",
+        "coordinate"), and when recorded `energy` ("t", J), `multipliers` and
+        `residual` ("t", "constraint"), each equal to the Solution's array of the
+        same name; `success`, whether the solve reached its end. Each variable's
+        `attrs` hold a `long_name` and its `units` ("s" for t, "J" for energy; the
+        coordinates keep each mechanism's own units, which the attribute
+        describes). `ds.attrs["message"]` is `sol.message`. After a failed solve
+        the values past the failure are NaN, as in the Solution.
+
+        A batched Solution (from `jax.vmap` or `jaxnh.sweep`: arrays with leading
+        batch axes) gets a leading "batch" dimension that counts the batch
+        elements in C order (as `to_dataframe` does; `ds.attrs["batch_shape"]`
+        holds the batch axes), `success` per element. Its elements must share
+        their report times: if `ts` differs between them (an event stopped some
+        runs early), there is no common "t" axis and a ValueError says so.
+
+        Raises:
+            ImportError: xarray is not installed (the message names the `data` extra).
+            ValueError: the Solution is traced (inside jit) or inconsistent, or its
+                batch elements were reported at different times.
+        """
+        return solution_to_xarray(self)
