@@ -130,3 +130,49 @@ def test_nearly_dependent_band_follows_the_dtype():
     assert not bool(nearly_dependent(rows(0.0, jnp.float64))) and not bool(nearly_dependent(rows(0.0, jnp.float32)))
     assert bool(nearly_dependent(rows(1e-9, jnp.float64)))
     assert not bool(nearly_dependent(rows(1e-9, jnp.float32)))
+
+
+# --- a user's acceleration energy S is checked against T ------------------------------------------------
+
+
+def _polar_T(q, qd, t, p):
+    """A unit point mass in polar coordinates (r, θ): T = ½ (r'² + r² θ'²), J."""
+    return 0.5 * (qd[0] ** 2 + q[0] ** 2 * qd[1] ** 2)
+
+
+def _polar_S(q, qd, a, t, p):
+    """Its acceleration energy ½ |acceleration|²: radial r'' − r θ'², transverse r θ'' + 2 r' θ'."""
+    return 0.5 * ((a[0] - q[0] * qd[1] ** 2) ** 2 + (q[0] * a[1] + 2 * qd[0] * qd[1]) ** 2)
+
+
+def _polar_S_no_centripetal(q, qd, a, t, p):
+    return 0.5 * (a[0] ** 2 + (q[0] * a[1] + 2 * qd[0] * qd[1]) ** 2)
+
+
+def _polar_S_mass_twice(q, qd, a, t, p):
+    return 2.0 * _polar_S(q, qd, a, t, p)
+
+
+def _polar_S_wrong_sign(q, qd, a, t, p):
+    return -_polar_S(q, qd, a, t, p)
+
+
+@pytest.mark.parametrize(
+    "S, agrees",
+    [(_polar_S, True), (_polar_S_no_centripetal, False), (_polar_S_mass_twice, False), (_polar_S_wrong_sign, False)],
+)
+def test_acceleration_energy_is_checked_against_the_kinetic_energy(S, agrees):
+    """Appell's theorem ∂S/∂qdd = M qdd + h is an identity of exact derivatives, so a right S passes
+    (to rounding) and a wrong one is refused, even from rest, where the forgotten centripetal term
+    vanishes (the check also looks at a second velocity): eagerly with InvalidInitialState naming
+    `acceleration_energy`, under jit with its status."""
+    mech = nh.Mechanism(_polar_T, acceleration_energy=S)
+    q0, qd0, ts = jnp.array([1.0, 0.0]), jnp.zeros(2), jnp.linspace(0.0, 1.0, 5)
+    if agrees:
+        assert nh.simulate(mech, {}, q0, qd0, ts, method="appell").message == "success"
+        return
+    with pytest.raises(nh.InvalidInitialState, match="acceleration_energy"):
+        nh.simulate(mech, {}, q0, qd0, ts, method="appell")
+    sol = jax.jit(lambda q: nh.simulate(mech, {}, q, qd0, ts, method="appell", throw=False))(q0)
+    assert bool(sol.status == nh.STATUS.acceleration_energy_mismatch)
+    assert bool(jnp.all(jnp.isnan(sol.q)))

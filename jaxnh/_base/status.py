@@ -90,6 +90,15 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "stays off it. Pass a q0 on the constraints: solve g(q0) = 0 for the dependent coordinates "
         "(`mech.holonomic_residual(q0, t0, params)` tells how far off it is)."
     )
+    acceleration_energy_mismatch = (
+        "The acceleration energy S (`acceleration_energy`) disagrees with the kinetic energy T at "
+        "the initial state. Appell's equations need ∂S/∂qdd = d/dt(∂T/∂qd) − ∂T/∂q, that is "
+        "∂²S/∂qdd² = M (the mass matrix ∂²T/∂qd²) and ∂S/∂qdd at qdd = 0 equal to the velocity "
+        "terms of Lagrange's equations, to √eps of their scale; they do not (a mass counted twice, "
+        "a centripetal or Coriolis term left out, a sign). method='appell' would integrate S and "
+        "method='lagrange' T: two different motions. Correct `acceleration_energy`, or leave it "
+        "out (jaxnh then builds S from T)."
+    )
     mass_matrix_became_singular = (
         "The solve stalled at a singular mass matrix: ∂²T/∂qd² at the last state reached is no "
         "longer positive definite, or an inertia on its diagonal has fallen to ~0 (below √eps of "
@@ -157,6 +166,7 @@ INPUT_FAILURES = (
     "constraints_nonlinear",
     "constraints_nearly_dependent",
     "friction_values_invalid",
+    "acceleration_energy_mismatch",
 )
 
 

@@ -24,6 +24,7 @@ from jaxnh._base.linalg import value_and_jacfwd
 from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
+from jaxnh._equations.terms import mass_and_velocity_terms
 from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_ok, nearly_dependent
 
 
@@ -60,6 +61,38 @@ def holonomic_consistent(mech, q, t, params):
     return jnp.all(jnp.isfinite(value)) & jnp.all(jnp.abs(value) <= tol)
 
 
+def acceleration_energy_agrees(mech, q, qd, t, params):
+    """Whether the user's acceleration energy S agrees with T at (q, qd, t) and at a second
+    velocity (qd + (1 + |qd|) w, w a fixed pattern of entries in [0.5, 1]: velocity terms that
+    vanish at a state at rest are checked too).
+
+    The check at one state: Appell's theorem
+    ∂S/∂qdd = M qdd + h (M the mass matrix, h the velocity terms of Lagrange's equations, both
+    from T), checked through S's Hessian in qdd against M and its gradient at qdd = 0 against h.
+    Both sides are exact derivatives, so they agree to rounding: the allowance is √eps of each
+    side's scale (for h: |h| + |∂S/∂qdd(0)| + eps |M| (1 + |qd|²), a floor at rounding level)."""
+    w = jnp.linspace(0.5, 1.0, qd.shape[0], dtype=qd.dtype) * (1 + jnp.max(jnp.abs(qd)))
+    return _agrees_at(mech, q, qd, t, params) & _agrees_at(mech, q, qd + w, t, params)
+
+
+def _agrees_at(mech, q, qd, t, params):
+    S = mech.acceleration_energy
+    assert S is not None
+
+    def dS(a):
+        return jax.grad(S, argnums=2)(q, qd, a, t, params)
+
+    M, h = mass_and_velocity_terms(mech, q, qd, t, params)
+    g0, H = value_and_jacfwd(dS, jnp.zeros_like(qd))
+    eps = jnp.finfo(q.dtype).eps
+    m_scale = jnp.max(jnp.abs(M))
+    h_scale = jnp.max(jnp.abs(h)) + jnp.max(jnp.abs(g0)) + eps * m_scale * (1 + jnp.max(jnp.abs(qd)) ** 2)
+    tol = jnp.sqrt(eps)
+    mass_ok = jnp.max(jnp.abs(H - M)) <= tol * m_scale
+    terms_ok = jnp.max(jnp.abs(g0 - h)) <= tol * h_scale
+    return mass_ok & terms_ok & jnp.all(jnp.isfinite(H)) & jnp.all(jnp.isfinite(g0))
+
+
 def initial_checks(form, q, qd, t, params):
     """(ok, STATUS) for the initial state (q, qd) at t of a bound formulation."""
     mech = form.mech
@@ -67,6 +100,10 @@ def initial_checks(form, q, qd, t, params):
     # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
+    if mech.acceleration_energy is not None:  # a user's S must be T's: both are given, check one against the other
+        agrees = acceleration_energy_agrees(mech, q, qd, t, params)
+        status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
+        ok = ok & agrees
     if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
         on = holonomic_consistent(mech, q, t, params)
         status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)

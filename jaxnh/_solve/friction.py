@@ -77,6 +77,7 @@ from jaxnh._model.checks import (
     nearly_dependent,
 )
 from jaxnh._model.mechanism import Mechanism
+from jaxnh._solve.diagnose import acceleration_energy_agrees
 from jaxnh._solve.sensitivity import ForwardSensitivity
 from jaxnh._solve.solution import Solution
 from jaxnh._solve.stepping import MappedSolver
@@ -717,6 +718,10 @@ def _initial_checks(f: _Friction, q, qd, t, params):
         else:
             det = block_determinant(A, permutation(f.independent, f.s), f.k)
             split_ok = jnp.abs(det) > 1e3 * jnp.finfo(q.dtype).eps
+    if mech.acceleration_energy is not None:
+        agrees = acceleration_energy_agrees(mech, q, qd, t, params)
+        status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
+        ok = ok & agrees
     for good, item in (
         (finite, STATUS.constraints_not_finite),
         (~velocity_free, STATUS.velocity_free_constraint),
