@@ -190,3 +190,11 @@ def test_every_public_name_has_an_api_reference_entry():
         if f"jaxnh.{n}" not in documented and not any(d.startswith(f"jaxnh.{n}.") for d in documented)
     ]
     assert not missing, f"no docs page documents {missing}: add `::: jaxnh.NAME` to a page under docs/api/"
+
+
+def test_mixed_dtypes_that_break_the_report_times_are_named():
+    """float64 report times 10 µs apart at t = 1000 s are equal in float32 (its resolution there is
+    61 µs): with a float32 q0 the refusal names the two dtypes, not just "ts must be increasing"."""
+    ts = np.linspace(1000.0, 1000.0 + 1e-4, 11)
+    with pytest.raises(ValueError, match="float64 and q0 is float32"):
+        nh.simulate(MECH, params(), jnp.zeros(2, jnp.float32), jnp.array([2.0, 2.0], jnp.float32), ts)

@@ -287,7 +287,9 @@ def simulate(
             _check_real_numbers(name, x)
     q0 = q0 if _is_float_jax_array(q0) else as_float(q0)
     qd0 = qd0 if _is_jax_array(qd0, q0.dtype) else jnp.asarray(qd0, dtype=q0.dtype)
+    ts_given = ts
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
+    _check_cast_times(ts_given, ts)
     params = as_data(params, q0)  # one program per structure of params, not per value
     if any(_is_complex(x) for x in jax.tree_util.tree_leaves(params)):
         _refuse_complex(params)
@@ -401,7 +403,22 @@ def simulate(
     return sol
 
 
-@functools.lru_cache(maxsize=64)
+def _check_cast_times(given, ts) -> None:
+    """Refuse report times that were strictly increasing in their own dtype but are not once cast
+    to q0's (e.g. float64 times a few µs apart with a float32 q0), naming the mixed dtypes."""
+    if given is ts or isinstance(given, jax.core.Tracer):
+        return
+    a = np.asarray(given)
+    if a.ndim != 1 or a.shape[0] < 2 or not np.issubdtype(a.dtype, np.floating) or a.dtype == ts.dtype:
+        return
+    if np.all(np.diff(a) > 0) and not np.all(np.diff(np.asarray(ts)) > 0):
+        raise ValueError(
+            f"ts: the report times are {a.dtype} and q0 is {ts.dtype}; jaxnh computes in q0's dtype, and cast to "
+            f"{ts.dtype} the times are no longer strictly increasing (some are closer than its resolution). "
+            f"Pass q0 and qd0 in {a.dtype}, or report times that {ts.dtype} can tell apart."
+        )
+
+
 def _coarse_interpolant(solver) -> bool:
     """Whether `solver` reports between its steps by an interpolant of lower order than its own
     (diffrax's third-order Hermite for a method of order > 3: the implicit Kvaerno4/5)."""
@@ -417,6 +434,7 @@ def _coarse_interpolant(solver) -> bool:
     return hermite and order > 3
 
 
+@functools.lru_cache(maxsize=64)
 def _pid(rtol, atol, dtype):
     # NumPy scalars: data to the compiled program (not a static constant), and safe to cache
     # (a jnp array made while tracing would be a tracer)
