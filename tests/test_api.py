@@ -198,3 +198,31 @@ def test_mixed_dtypes_that_break_the_report_times_are_named():
     ts = np.linspace(1000.0, 1000.0 + 1e-4, 11)
     with pytest.raises(ValueError, match="float64 and q0 is float32"):
         nh.simulate(MECH, params(), jnp.zeros(2, jnp.float32), jnp.array([2.0, 2.0], jnp.float32), ts)
+
+
+def _event_solve(J1, cond, **kw):
+    p = params(J1=J1)
+    sol = nh.simulate(MECH, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS, event=diffrax.Event(cond), throw=False, **kw)
+    return jnp.nansum(sol.q)
+
+
+def test_derivatives_through_events_are_right_or_refused_by_name():
+    """A boolean event condition has no root: its time would get a zero derivative, so any
+    derivative through the solve is refused naming the fix; forward mode through diffrax's
+    reverse-mode adjoint (the default with events) is refused naming adjoint=diffrax.ForwardMode(),
+    which then works and agrees with reverse mode to rounding of the same discrete solve."""
+
+    def boolean(t, y, p, **kw):
+        return y[0][0] > 1.0
+
+    def real(t, y, p, **kw):
+        return y[0][0] - 1.0
+
+    J1 = jnp.asarray(0.02)
+    with pytest.raises(TypeError, match="real-valued function"):
+        jax.grad(lambda j: _event_solve(j, boolean))(J1)
+    with pytest.raises(TypeError, match="adjoint=diffrax.ForwardMode"):
+        jax.jacfwd(lambda j: _event_solve(j, real))(J1)
+    fwd = jax.jacfwd(lambda j: _event_solve(j, real, adjoint=diffrax.ForwardMode()))(J1)
+    rev = jax.grad(lambda j: _event_solve(j, real))(J1)
+    assert np.isfinite(float(fwd)) and abs(float(fwd) - float(rev)) <= 1e-8 * abs(float(rev))

@@ -372,25 +372,34 @@ def simulate(
             throw=throw, rtol=float(rtol), max_transitions=max_transitions,
         )  # fmt: skip
     traced = is_traced(params, q0, qd0, ts, form)
-    sol = _run(
-        mech,
-        form,
-        params,
-        q0,
-        qd0,
-        ts,
-        solver,
-        stepsize_controller,
-        saveat,
-        event,
-        progress_meter,
-        adjoint,
-        dt0,
-        record=record,
-        max_steps=int(max_steps),
-        rtol=_rtol_class(float(rtol)),
-        graph_throw=bool(throw and traced),
-    )
+    try:
+        sol = _run(
+            mech,
+            form,
+            params,
+            q0,
+            qd0,
+            ts,
+            solver,
+            stepsize_controller,
+            saveat,
+            event,
+            progress_meter,
+            adjoint,
+            dt0,
+            record=record,
+            max_steps=int(max_steps),
+            rtol=_rtol_class(float(rtol)),
+            graph_throw=bool(throw and traced),
+        )
+    except TypeError as e:  # JAX's words name no argument: say which one and the fix
+        if "custom_vjp" not in str(e):
+            raise
+        raise TypeError(
+            "simulate: forward-mode derivatives (jax.jvp, jax.jacfwd) cannot go through a reverse-mode adjoint "
+            f"(adjoint={adjoint!r}; diffrax's RecursiveCheckpointAdjoint is the default with events, dense output "
+            "and progress meters): pass adjoint=diffrax.ForwardMode(), or use jax.grad / jax.jacrev"
+        ) from e
     if throw and not traced and np.ndim(status_code(sol.status)) == 0 and int(np.asarray(status_code(sol.status))) != 0:
         err = error_for(sol.status)
         if isinstance(err, ValueError):  # name the argument and show the values, eagerly
@@ -401,6 +410,32 @@ def simulate(
                 err = type(err)(f"{err}\nDetails: {detail}", sol.status)
         raise err
     return sol
+
+
+def _boolean_condition(event, t, y, args) -> bool:
+    """Whether any condition of a diffrax Event returns a bool (an event without a root)."""
+    conds = jax.tree_util.tree_leaves(event.cond_fn, is_leaf=callable)
+    return any(jnp.dtype(jax.eval_shape(c, t, y, args).dtype) == jnp.bool_ for c in conds)
+
+
+@jax.custom_jvp
+def _refuse_derivative(x):
+    return x
+
+
+@_refuse_derivative.defjvp
+def _refuse_derivative_jvp(primals, tangents):
+    raise TypeError(
+        "simulate: the solve ends at an event whose condition is boolean: it has no root to locate, so "
+        "the event's time (and everything after it) has no derivative (it would come out 0). Write the "
+        "condition as a real-valued function of (t, (q, qd), params) whose sign change marks the event "
+        "(e.g. `q[0] - 1.0` rather than `q[0] > 1.0`): its time is then located by root finding and "
+        "differentiable"
+    )
+
+
+def _refuse_derivatives(tree):
+    return jax.tree_util.tree_map(lambda x: _refuse_derivative(x) if eqx.is_inexact_array(x) else x, tree)
 
 
 def _check_cast_times(given, ts) -> None:
@@ -670,6 +705,10 @@ def _run_traced(
         )
         out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
         event_mask, interpolation = sol.event_mask, sol.interpolation
+        if event is not None and _boolean_condition(event, t0r, y0, args):
+            # no root to locate: the solve stops at the end of the step in which the condition
+            # became True, a time whose derivative would come out 0 — refused, not returned
+            out_ts, ys = _refuse_derivatives((out_ts, ys))
     if out_ts is None or ys is None:
         raise ValueError("saveat must save at some times (ts=..., t1=True or steps=True) for simulate to report them")
     if diagnose:
