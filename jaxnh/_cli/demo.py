@@ -122,13 +122,12 @@ def run(out_dir: str = "jaxnh_out", fit: bool = True, figures: bool = True) -> d
         report[f"energy_drift_{m}"] = drift
         print(f"   {m:<12} max |T − T0| / T0 = {drift:9.2e}")
 
-    report["friction"] = friction_limit(p)
-
     if figures:
         fig_path = os.path.join(out_dir, "variator_methods.png")
         _save(plot_methods(ts, q_ref, qd_ref, sols, tf, energies), fig_path)
         print(f"\n   figure: {fig_path}")
         report["figure"] = fig_path
+    report["friction"] = friction_limit(p)
     if fit:
         report["fit"] = demo_fit(out_dir, figures=figures)
     return report

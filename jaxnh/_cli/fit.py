@@ -577,7 +577,7 @@ def demo_fit(out_dir: str = "jaxnh_out", figures: bool = True) -> dict:
     with "truth_inside_95" added."""
     record = load_default()
     truth = _truth()
-    print("\n4. Parameter identification on the embedded record (jaxnh fit)")
+    print("\n5. Parameter identification on the embedded record (jaxnh fit)")
     print(
         f"   {record.n} samples over {record.t[-1]:.3g} s at {1 / np.median(np.diff(record.t)):.0f} Hz: "
         "two quantised encoders, motor and load torque, U21 changing from "
