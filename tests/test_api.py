@@ -226,3 +226,17 @@ def test_derivatives_through_events_are_right_or_refused_by_name():
     fwd = jax.jacfwd(lambda j: _event_solve(j, real, adjoint=diffrax.ForwardMode()))(J1)
     rev = jax.grad(lambda j: _event_solve(j, real))(J1)
     assert np.isfinite(float(fwd)) and abs(float(fwd) - float(rev)) <= 1e-8 * abs(float(rev))
+
+
+def test_params_that_are_not_a_pytree_are_refused_by_name():
+    """A SimpleNamespace or an unregistered dataclass is one opaque leaf to JAX: refused, naming params."""
+    import dataclasses
+    import types
+
+    @dataclasses.dataclass
+    class Plain:
+        J1: float
+
+    for p in (types.SimpleNamespace(J1=0.02), Plain(0.02)):
+        with pytest.raises(TypeError, match="params: found an object of type"):
+            nh.simulate(MECH, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS)

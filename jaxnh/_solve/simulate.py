@@ -11,6 +11,7 @@ than the compiled solve.
 
 from __future__ import annotations
 
+import enum
 import functools
 from typing import Any, Callable, Optional
 
@@ -291,8 +292,10 @@ def simulate(
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
     _check_cast_times(ts_given, ts)
     params = as_data(params, q0)  # one program per structure of params, not per value
-    if any(_is_complex(x) for x in jax.tree_util.tree_leaves(params)):
+    leaves = jax.tree_util.tree_leaves(params)
+    if any(_is_complex(x) for x in leaves):
         _refuse_complex(params)
+    _check_param_leaves(leaves)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(
             f"ts must be a 1-D array of at least 2 report times (ts[0] is the start); got shape {ts.shape}"
@@ -507,6 +510,24 @@ def _check_real_numbers(name, x):
                 if np.issubdtype(kind, np.complexfloating)
                 else ""
             )
+        )
+
+
+_PLAIN_LEAVES = (jax.Array, np.ndarray, np.generic, int, float, bool, str, bytes, type(None), enum.Enum)
+
+
+def _check_param_leaves(leaves) -> None:
+    """Refuse a params leaf that is an arbitrary object: JAX would treat it as one opaque constant
+    (its numbers compiled in, never differentiated or batched), or fail inside equinox or JAX with
+    a message that names nothing."""
+    for x in leaves:
+        if isinstance(x, _PLAIN_LEAVES) or callable(x):
+            continue
+        raise TypeError(
+            f"params: found an object of type {type(x).__name__} that JAX cannot look into (it is not a "
+            "pytree: not a dict, list, tuple, NamedTuple, equinox.Module or registered dataclass), so its "
+            "numbers would be neither differentiated nor batched. Pass params as a dict (or another pytree) "
+            f"of arrays and numbers; got {x!r:.200}"
         )
 
 
