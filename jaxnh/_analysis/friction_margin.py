@@ -69,7 +69,7 @@ def stick_margin(mech: Mechanism, params, q0, qd0, ts, *, temperature: float = 0
         raise ValueError(f"stick_margin: temperature must be > 0; got {temperature!r}")
     record = tuple(simulate_kwargs.pop("record", ()))
     rolling = dataclasses.replace(mech, contacts=())
-    sol = simulate(rolling, params, q0, qd0, ts, record=tuple(set(record) | {"multipliers"}), **simulate_kwargs)
+    sol = simulate(rolling, params, q0, qd0, ts, record=(*record, "multipliers"), **simulate_kwargs)
     ts_ = jnp.asarray(ts, sol.q.dtype)
 
     def one(q, qd, t, lam):

@@ -177,7 +177,7 @@ def _record(record, form) -> tuple:
             raise ValueError(f"record entries must be among {RECORDABLE}; got {r!r}")
     if "multipliers" in record and not form.has_multipliers:
         raise ValueError(f"record='multipliers' is not available for method={form.name!r} (it has no multipliers)")
-    return record
+    return tuple(r for r in RECORDABLE if r in record)  # one order: the same program for any order given
 
 
 def simulate(
