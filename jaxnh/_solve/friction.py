@@ -78,6 +78,7 @@ from jaxnh._model.checks import (
 )
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
+from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.sensitivity import ForwardSensitivity
 from jaxnh._solve.solution import Solution
 from jaxnh._solve.stepping import MappedSolver
@@ -736,40 +737,8 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     return ok, status
 
 
-def _all_finite(tree):
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if eqx.is_inexact_array(x)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
-
-
-def _no_grad(tree):
-    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
-
-
-@jax.custom_jvp
-def _nan_link(bad, total):
-    """0, whose derivative with respect to `total` is NaN when `bad` (a failed solve: its
-    derivatives are NaN, not plausible numbers)."""
-    return jnp.where(bad, 0.0, 0.0).astype(total.dtype) + jnp.zeros_like(total)
-
-
-@_nan_link.defjvp
-def _nan_link_jvp(primals, tangents):
-    bad, total = primals
-    zero = jnp.where(bad, 0.0, 0.0).astype(total.dtype) + jnp.zeros_like(total)
-    return zero, tangents[1] * jnp.where(bad, jnp.nan, 0.0).astype(total.dtype)
-
-
-def _input_sum(tree):
-    leaves = [jnp.sum(x) for x in jax.tree_util.tree_leaves(tree) if eqx.is_inexact_array(x)]
-    return sum(leaves[1:], leaves[0]) if leaves else jnp.zeros(())
-
-
 def _where_tree(cond, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(cond, x, y), a, b)
-
-
-def _bcast(mask, x):
-    return mask.reshape(mask.shape + (1,) * (x.ndim - mask.ndim))
 
 
 def _run_traced(
@@ -792,13 +761,13 @@ def _run_traced(
     dtype = q0.dtype
     n, nc = ts.shape[0], f.nc
     K = cap + 1
-    finite = _all_finite((q0, qd0, ts, params))
+    finite = all_finite((q0, qd0, ts, params))
     increasing = jnp.all(jnp.diff(ts) > 0)
     q0r = jnp.where(finite, q0, 0.0)
     qd0r = jnp.where(finite, qd0, 0.0)
     tsr = jnp.where(finite & increasing, ts, jnp.arange(n, dtype=dtype))
     t0, t_end = tsr[0], tsr[-1]
-    checked, check_status = _initial_checks(f, *_no_grad((q0r, qd0r, t0, params)))
+    checked, check_status = _initial_checks(f, *no_grad((q0r, qd0r, t0, params)))
     ok = finite & increasing & checked
     status0 = STATUS.where(checked, STATUS.successful, check_status)  # pyright: ignore[reportArgumentType]
     status0 = STATUS.where(increasing, status0, STATUS.bad_report_times)
@@ -810,7 +779,7 @@ def _run_traced(
     # The modes carry no derivative: slipping flags are discrete, a line contact's direction is ±1,
     # and a two-row contact's direction enters the motion only where ‖w‖ ≲ tau (the kinetic force
     # follows w elsewhere) and the guard w·d only through w at its root, where w = 0.
-    qs0, qds0, ts0, ps0 = _no_grad((q0r, qd0r, t0, params))
+    qs0, qds0, ts0, ps0 = no_grad((q0r, qd0r, t0, params))
     mode0, _ = f.resolve(qs0, qds0, ts0, ps0, dummy, jnp.zeros((nc,), bool), initial=True)
     mode0 = _where_tree(ok, mode0, dummy)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
@@ -880,7 +849,7 @@ def _run_traced(
         # the reports that belong to this segment
         tr = jnp.clip(tsr, ta, t_end)
         reached = jnp.all(jnp.isfinite(ys[0]), axis=1)
-        ysafe = jax.tree_util.tree_map(lambda x: jnp.where(_bcast(reached, x), x, 0.0), ys)
+        ysafe = jax.tree_util.tree_map(lambda x: jnp.where(bcast(reached, x), x, 0.0), ys)
         qr, qdr = jax.vmap(lambda y, t: f.unpack(y, t, params, mode, perm))(ysafe, tr)
         belong = active & ~failed & reached & (tsr >= ta) & jnp.where(fired, tsr < t1, tsr <= t1)
         old_q, old_qd, old_mode, old_in = carry["reports"]
@@ -888,7 +857,7 @@ def _run_traced(
         reports = (
             jnp.where(belong[:, None], qr, old_q),
             jnp.where(belong[:, None], qdr, old_qd),
-            jax.tree_util.tree_map(lambda a, b: jnp.where(_bcast(belong, a), a, b), rep_mode, old_mode),
+            jax.tree_util.tree_map(lambda a, b: jnp.where(bcast(belong, a), a, b), rep_mode, old_mode),
             old_in | belong,
         )
         # the end of the segment, and the modes after it
@@ -899,7 +868,7 @@ def _run_traced(
         g = f.guards(q1, qd1, t1s, params, mode)
         j = jnp.argmin(g)
         fired_mask = jnp.arange(nc) == j
-        qs1, qds1, ts1, ps1, mode_s = _no_grad((q1, qd1, t1s, params, mode))
+        qs1, qds1, ts1, ps1, mode_s = no_grad((q1, qd1, t1s, params, mode))
         new_mode, kinds = f.resolve(qs1, qds1, ts1, ps1, mode_s, fired_mask, initial=False)
         last = k == K - 1
         over = fired & last
@@ -986,10 +955,10 @@ def _run_traced(
     dur = jnp.where(segs["slipping"], jnp.nan_to_num(segs["end"] - segs["start"])[:, None], 0.0)
     slip_time = jnp.sum(dur, axis=0)
     failed = status != STATUS.successful
-    link = _nan_link(failed, _input_sum((params, q0, qd0)))
+    link = nan_link(failed, input_sum((params, q0, qd0)))
 
     def finish(x):
-        x = jnp.where(_bcast(reached, x), x, jnp.nan) if x.shape[:1] == (n,) else x
+        x = jnp.where(bcast(reached, x), x, jnp.nan) if x.shape[:1] == (n,) else x
         return jnp.where(ok, x, jnp.nan) + link.astype(x.dtype)
 
     q, qd = finish(q), finish(qd)

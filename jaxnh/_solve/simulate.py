@@ -31,6 +31,7 @@ from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints
 from jaxnh._solve.diagnose import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
+from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.rk import UnrolledTsit5
 from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import DenseMotion, Solution
@@ -444,12 +445,13 @@ def _refuse_derivatives(tree):
 def _check_cast_times(given, ts) -> None:
     """Refuse report times that were strictly increasing in their own dtype but are not once cast
     to q0's (e.g. float64 times a few µs apart with a float32 q0), naming the mixed dtypes."""
-    if given is ts or isinstance(given, jax.core.Tracer):
+    if given is ts or is_traced(given):
         return
-    a = np.asarray(given)
+    a = np.asarray(given, dtype=float) if isinstance(given, (list, tuple)) else np.asarray(given)
     if a.ndim != 1 or a.shape[0] < 2 or not np.issubdtype(a.dtype, np.floating) or a.dtype == ts.dtype:
         return
-    if np.all(np.diff(a) > 0) and not np.all(np.diff(np.asarray(ts)) > 0):
+    cast = np.asarray(ts, dtype=float)
+    if bool(np.all(np.diff(a.astype(float)) > 0)) and not bool(np.all(np.diff(cast) > 0)):
         raise ValueError(
             f"ts: the report times are {a.dtype} and q0 is {ts.dtype}; jaxnh computes in q0's dtype, and cast to "
             f"{ts.dtype} the times are no longer strictly increasing (some are closer than its resolution). "
@@ -574,44 +576,6 @@ def _hashable(x) -> bool:
         return False
 
 
-def _is_float_array(x) -> bool:
-    return eqx.is_inexact_array(x)
-
-
-def _all_finite(tree):
-    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.asarray(True)
-
-
-@jax.custom_jvp
-def _nan_link(bad, total):
-    """0, whose derivative with respect to `total` is NaN when `bad` is True (else 0).
-
-    Added to every output with `total` a sum over the inputs: a failed solve or
-    non-finite input then has NaN derivatives with respect to every input, in
-    forward and reverse mode, while its values are left as they are (a mask
-    on the outputs alone would hide the NaN from reverse mode).
-    """
-    return _zero_like_both(bad, total)
-
-
-def _zero_like_both(bad, total):
-    # batched like either argument, so the primal and its tangent batch alike under vmap
-    return jnp.where(bad, 0.0, 0.0).astype(total.dtype) + jnp.zeros_like(total)
-
-
-@_nan_link.defjvp
-def _nan_link_jvp(primals, tangents):
-    bad, total = primals
-    _, dtotal = tangents
-    return _zero_like_both(bad, total), dtotal * jnp.where(bad, jnp.nan, 0.0).astype(total.dtype)
-
-
-def _input_sum(tree):
-    leaves = [jnp.sum(x) for x in jax.tree_util.tree_leaves(tree) if _is_float_array(x)]
-    return sum(leaves[1:], leaves[0]) if leaves else jnp.zeros(())
-
-
 class _UserEvent(eqx.Module):
     """A user's event condition, called with (q, qd) and params."""
 
@@ -650,7 +614,7 @@ def _run_traced(
     if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
         form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
     form = form.bind(mech, s, m)
-    finite = _all_finite((q0, qd0, ts, params, form))
+    finite = all_finite((q0, qd0, ts, params, form))
     increasing = jnp.all(jnp.diff(ts) > 0)
     q0r = jnp.where(finite, q0, 0.0)
     qd0r = jnp.where(finite, qd0, 0.0)
@@ -658,7 +622,7 @@ def _run_traced(
     t0r = tsr[0]
     # the checks and diagnoses below only decide a status: no derivative flows through them, and
     # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
-    checked, check_status = initial_checks(*_no_grad((form, q0r, qd0r, t0r, params)))
+    checked, check_status = initial_checks(*no_grad((form, q0r, qd0r, t0r, params)))
     ok = finite & increasing & checked
     y0 = form.state(q0r, qd0r, t0r, params)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
@@ -764,25 +728,25 @@ def _run_traced(
         y_diag = jax.tree_util.tree_map(lambda x, e: jnp.where(rows.any(), x[first], e), ys, y_end)
         t_diag = jnp.where(rows.any(), out_ts[first], t_end)
         result = STATUS.where((result == STATUS.successful) & rows.any(), STATUS.non_finite_output, result)
-        form_, y_, t_, params_ = _no_grad((form, y_diag, t_diag, params))
-        result = diagnose_stall(form_, y_, t_, params_, result, start=_no_grad((q0r, qd0r, t0r)))
+        form_, y_, t_, params_ = no_grad((form, y_diag, t_diag, params))
+        result = diagnose_stall(form_, y_, t_, params_, result, start=no_grad((q0r, qd0r, t0r)))
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check)
-        ratio = _stiffness(*_no_grad((form, ys, out_ts, params, stats, t0r)))
+        ratio = _stiffness(*no_grad((form, ys, out_ts, params, stats, t0r)))
         stats["stiffness"] = ratio
         result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
     status = STATUS.where(checked, result, check_status)
     status = STATUS.where(increasing, status, STATUS.bad_report_times)
     status = STATUS.where(finite, status, STATUS.non_finite_input)
     reached = jnp.isfinite(out_ts)
-    bad_output = (status == STATUS.successful) & ~_all_finite(
-        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(reached, x), x, 0.0), (q, qd, out))
+    bad_output = (status == STATUS.successful) & ~all_finite(
+        jax.tree_util.tree_map(lambda x: jnp.where(bcast(reached, x), x, 0.0), (q, qd, out))
     )
     status = STATUS.where(bad_output, STATUS.non_finite_output, status)
     failed = status != STATUS.successful
     nan_all = ~ok
-    link = _nan_link(failed, _input_sum((params, q0, qd0, form)))
+    link = nan_link(failed, input_sum((params, q0, qd0, form)))
 
     def finish(x):
         return jnp.where(nan_all, jnp.nan, x) + link.astype(x.dtype)
@@ -816,11 +780,6 @@ def _explicit(solver) -> bool:
     return not isinstance(inner, diffrax.AbstractImplicitSolver)
 
 
-def _no_grad(tree):
-    """`tree` with `stop_gradient` on its array leaves (other leaves as they are)."""
-    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
-
-
 def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
     """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states.
 
@@ -832,13 +791,9 @@ def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
     tsub = ts[idx]
     ok = jnp.isfinite(tsub)
     rho = jax.vmap(lambda y, t: spectral_radius(form, y, t, params))(
-        jax.tree_util.tree_map(lambda x: jnp.where(_bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0)
+        jax.tree_util.tree_map(lambda x: jnp.where(bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0)
     )
     rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)
     t_last = jnp.max(jnp.where(jnp.isfinite(ts), ts, t0))
     h = (t_last - t0) / jnp.maximum(stats["num_accepted_steps"], 1)
     return jnp.nan_to_num(h * jnp.nanmedian(rho))
-
-
-def _bcast(mask, x):
-    return mask.reshape(mask.shape + (1,) * (x.ndim - 1))
