@@ -240,3 +240,14 @@ def test_params_that_are_not_a_pytree_are_refused_by_name():
     for p in (types.SimpleNamespace(J1=0.02), Plain(0.02)):
         with pytest.raises(TypeError, match="params: found an object of type"):
             nh.simulate(MECH, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS)
+
+
+@pytest.mark.parametrize("method", ["lagrange", "appell"])
+def test_a_terminating_event_with_each_formulation(method):
+    """φ1 reaches 1 rad at t_e: the reports after t_e are NaN, those before finite, status success
+    (Lagrange's form has Python flags: the check of the condition's type must not abstract them)."""
+    sol = nh.simulate(MECH, params(), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, method=method,
+                      event=diffrax.Event(lambda t, y, p, **kw: y[0][0] - 1.0))  # fmt: skip
+    finite = np.isfinite(np.asarray(sol.q[:, 0]))
+    assert sol.message == "success" and 0 < finite.sum() < len(TS)
+    assert np.all(np.asarray(sol.q)[finite, 0] < 1.0)

@@ -419,7 +419,8 @@ def simulate(
 def _boolean_condition(event, t, y, args) -> bool:
     """Whether any condition of a diffrax Event returns a bool (an event without a root)."""
     conds = jax.tree_util.tree_leaves(event.cond_fn, is_leaf=callable)
-    return any(jnp.dtype(jax.eval_shape(c, t, y, args).dtype) == jnp.bool_ for c in conds)
+    # (args closed over, not abstracted: the formulation in them has Python flags its methods branch on)
+    return any(jnp.dtype(jax.eval_shape(lambda t_, y_, c=c: c(t_, y_, args), t, y).dtype) == jnp.bool_ for c in conds)
 
 
 @jax.custom_jvp
