@@ -189,7 +189,7 @@ def _plain(
     error_mask,
     norm=None,
 ):
-    if norm is not None:
+    if norm is not None and hasattr(controller, "norm"):  # (a constant step size has no error norm)
         controller = eqx.tree_at(lambda c: c.norm, controller, norm)
     sol = diffrax_solve(
         vector_field,
