@@ -700,16 +700,25 @@ def _run_traced(
     if diagnose:
         t_end, y_end = out_ts[1][-1], jax.tree_util.tree_map(lambda x: x[-1], ys[1])
         out_ts, ys = out_ts[0], ys[0]
-    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys, out_ts)
+    # rows the solve did not reach (diffrax fills them with inf: SaveAt(steps=True) beyond the last
+    # step, reports after a terminating event) are evaluated at the initial state and then set to inf
+    # (NaN for recorded quantities): evaluated at inf, their zero cotangents would meet infinite
+    # derivatives and make every gradient NaN
+    saved = jnp.isfinite(out_ts)
+    ys_s = jax.tree_util.tree_map(lambda x, x0: jnp.where(bcast(saved, x), x, x0), ys, y0)
+    ts_s = jnp.where(saved, out_ts, t0r)
+    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys_s, ts_s)
     out = {}
     if "multipliers" in record:
         out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(
-            q, qd, out_ts
+            q, qd, ts_s
         )
     if "energy" in record:
-        out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, out_ts)
+        out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts_s)
     if "residual" in record:
-        out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, out_ts)
+        out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, ts_s)
+    q, qd = (jnp.where(bcast(saved, x), x, jnp.inf) for x in (q, qd))
+    out = {k: jnp.where(bcast(saved, v), v, jnp.nan) for k, v in out.items()}
     stats = dict(stats)
     stages = _stages_per_step(solver)
     if stages is not None and "rhs_evaluations" not in stats:
