@@ -666,6 +666,12 @@ def _run_traced(
         )
     args = (form, params, ok)
     maps = form.step_maps()
+    if maps is not None and isinstance(adjoint, diffrax.BacksolveAdjoint):
+        raise ValueError(
+            f"adjoint=diffrax.BacksolveAdjoint() cannot differentiate through the maps method={form.name!r} applies "
+            "around every step (Appell's choice of independent velocities, Lagrange's projection): use the "
+            "default adjoint or diffrax.RecursiveCheckpointAdjoint(), or method='lagrange' without projection"
+        )
     kw = dict(t0=t0r, t1=tsr[-1], max_steps=max_steps, dt0=dt0, error_mask=form.error_mask())
     event_mask = interpolation = None
     if isinstance(adjoint, ForwardSensitivity):
