@@ -338,13 +338,18 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
     parts = [jnp.ravel(t).astype(dtype) for t, on in zip(jtu.tree_leaves(t_y0, is_leaf=is_none), y_on) if on]
     parts += [jnp.ravel(t).astype(dtype) for t in jtu.tree_leaves(tp_diff)]
     tvec = jnp.concatenate(parts)
+
     # saved sensitivities have shape (n, P, ...): contract the column axis. Rows the solve never
     # reached (diffrax's inf: SaveAt(steps=True) beyond the last step) get a zero tangent: their
     # inf would otherwise meet a zero cotangent when reverse mode transposes this map (NaN)
     def zero_unreached(t, S):
         return jtu.tree_map(lambda s: jnp.where(jnp.isfinite(t).reshape((-1,) + (1,) * (s.ndim - 1)), s, 0.0), S)
 
-    Ss = [zero_unreached(t, S) for t, S in zip(ts, Ss)] if isinstance(Ss, list) else zero_unreached(ts, Ss)
+    if isinstance(Ss, list):
+        assert isinstance(ts, (list, tuple))  # one time array per SubSaveAt
+        Ss = [zero_unreached(t, S) for t, S in zip(ts, Ss)]
+    else:
+        Ss = zero_unreached(ts, Ss)
     t_ys = jtu.tree_map(lambda s: jnp.tensordot(s, tvec, axes=([1], [0])).astype(s.dtype), Ss)
     no_tangent = lambda tree: jtu.tree_map(lambda _: None, tree)  # noqa: E731
     return (ts, ys, result, stats), (no_tangent(ts), t_ys, no_tangent(result), no_tangent(stats))
