@@ -710,6 +710,7 @@ def test_pairwise_set_covers_every_pair():
     assert all(expect(c).kind == "xfail" for c in KNOWN_FAILURES)
 
 
+@pytest.mark.slow  # 73 programs to compile: minutes, so not in `make test-quick` (in `make test` and CI)
 @pytest.mark.parametrize("case", params(QUICK))
 def test_option_pairs(case, capfd):
     check_case(case, capfd)
