@@ -1,6 +1,7 @@
 """Test-session settings shared by every test module.
 
-The suite uses JAX's persistent compilation cache like any jaxnh user (in
-`~/.cache/jaxnh`, or `$JAXNH_CACHE_DIR`): a second run of the suite loads its
-compiled programs instead of compiling them again.
+None at present: each test process compiles its own programs (JAX's persistent
+compilation cache is opt-in in jaxnh, `jaxnh.enable_compilation_cache()`, and the
+suite does not turn it on). Compiled functions are shared within a module by
+module-level caches and fixtures.
 """

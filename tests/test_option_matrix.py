@@ -10,15 +10,17 @@ A combination that crashes with a message naming nothing, or returns a wrong ans
 success status, is kept as a strict xfail saying what happens.
 
 Tiers:
-* quick (no mark): a pairwise covering set, made by a small deterministic greedy all-pairs
-  generator (`pairwise`): every pair of values of two different options is in a case that works,
-  or, for a pair that no case can make work (e.g. ForwardSensitivity with dense output), in a
-  case whose refusal or failure that pair decides. No pair is left out as meaningless: the one
-  candidate (a boolean event under a derivative) is refused by simulate itself. The known
-  failures (`KNOWN_FAILURES`) are added to this tier so that each is seen.
-* slow: the full product formulation × solver × adjoint × saveat (event, meter, transformation at
-  their defaults), and events × adjoints × formulations: about 1300 cases, 900 programs to
-  compile (about an hour on one core), opt-in with JAXNH_FULL_OPTION_MATRIX=1.
+* all pairs (`test_option_pairs`; slow-marked, about 5 minutes on one core: `make test` and CI
+  run it, `make test-quick` does not): a pairwise covering set, made by a small deterministic
+  greedy all-pairs generator (`pairwise`): every pair of values of two different options is in a
+  case that works, or, for a pair that no case can make work (e.g. ForwardSensitivity with dense
+  output), in a case whose refusal or failure that pair decides. No pair is left out as
+  meaningless: the one candidate (a boolean event under a derivative) is refused by simulate
+  itself. The known failures (`KNOWN_FAILURES`) are added to this tier so that each is seen.
+* full product (`test_option_product`; slow-marked and opt-in with JAXNH_FULL_OPTION_MATRIX=1):
+  formulation × solver × adjoint × saveat (event, meter, transformation at their defaults), and
+  events × adjoints × formulations: about 1300 cases, 900 programs to compile (about an hour on
+  one core).
 
 Every case compiles a program of its own (2–8 s; more for derivatives): report times are few (11
 over 2 s), and a derivative case takes its central differences from its own compiled program
@@ -710,7 +712,7 @@ def test_pairwise_set_covers_every_pair():
     assert all(expect(c).kind == "xfail" for c in KNOWN_FAILURES)
 
 
-@pytest.mark.slow  # 73 programs to compile: minutes, so not in `make test-quick` (in `make test` and CI)
+@pytest.mark.slow  # about 47 full programs to compile (5 min): in `make test` and CI, not `make test-quick`
 @pytest.mark.parametrize("case", params(QUICK))
 def test_option_pairs(case, capfd):
     check_case(case, capfd)
