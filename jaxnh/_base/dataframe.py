@@ -165,19 +165,7 @@ def solution_to_dataframe(sol):
             "Solution.to_dataframe needs pandas (pip install pandas); the arrays are "
             "sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual"
         ) from None
-    try:
-        q = np.asarray(sol.q)
-        qd = np.asarray(sol.qd)
-        ts = np.asarray(sol.ts)
-    except Exception as e:  # a tracer: inside jit/vmap
-        raise ValueError(
-            "to_dataframe: the Solution holds traced values (inside jax.jit/vmap); call it on the "
-            f"returned Solution outside the transformation ({type(e).__name__})"
-        ) from None
-    if q.ndim < 2:
-        raise ValueError(f"to_dataframe: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
-    batch_shape = q.shape[:-2]
-    n, s = q.shape[-2:]
+    q, qd, ts, batch_shape, n, s = _host_arrays(sol, "to_dataframe")
     names = _names(sol, s)
     optional = {}
     for attr, label in (("energy", "energy"), ("multipliers", "lambda"), ("residual", "residual")):
@@ -247,6 +235,23 @@ _XARRAY_ATTRS = {
 }
 
 
+def _host_arrays(sol, who: str):
+    """(q, qd, ts) of a Solution as NumPy arrays, its batch shape, n report times and s coordinates;
+    a ValueError naming `who` for a traced Solution or a q of the wrong rank."""
+    try:
+        q = np.asarray(sol.q)
+        qd = np.asarray(sol.qd)
+        ts = np.asarray(sol.ts)
+    except Exception as e:  # a tracer: inside jit/vmap
+        raise ValueError(
+            f"{who}: the Solution holds traced values (inside jax.jit/vmap); call it on the "
+            f"returned Solution outside the transformation ({type(e).__name__})"
+        ) from None
+    if q.ndim < 2:
+        raise ValueError(f"{who}: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
+    return q, qd, ts, q.shape[:-2], *q.shape[-2:]
+
+
 def solution_to_xarray(sol):
     """A `Solution` as an `xarray.Dataset`: `Solution.to_xarray`, see there."""
     try:
@@ -256,19 +261,7 @@ def solution_to_xarray(sol):
             "Solution.to_xarray needs xarray (pip install xarray, or the data extra: pip install 'jaxnh[data]'); "
             "the arrays are sol.ts, sol.q, sol.qd, sol.energy, sol.multipliers, sol.residual"
         ) from None
-    try:
-        q = np.asarray(sol.q)
-        qd = np.asarray(sol.qd)
-        ts = np.asarray(sol.ts)
-    except Exception as e:  # a tracer: inside jit/vmap
-        raise ValueError(
-            "to_xarray: the Solution holds traced values (inside jax.jit/vmap); call it on the "
-            f"returned Solution outside the transformation ({type(e).__name__})"
-        ) from None
-    if q.ndim < 2:
-        raise ValueError(f"to_xarray: sol.q must be (n, s) or (batch..., n, s); got shape {q.shape}")
-    batch_shape = q.shape[:-2]
-    n, s = q.shape[-2:]
+    q, qd, ts, batch_shape, n, s = _host_arrays(sol, "to_xarray")
     nb = int(np.prod(batch_shape))
     lead = ("batch",) if batch_shape else ()
 

@@ -52,7 +52,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxnh._base.compat import no_host_callbacks, status_code
+from jaxnh._base.compat import status_code
 from jaxnh._base.linalg import (
     cholesky,
     mm,
@@ -79,9 +79,8 @@ from jaxnh._model.checks import (
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
-from jaxnh._solve.sensitivity import ForwardSensitivity
+from jaxnh._solve.sensitivity import diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import Solution
-from jaxnh._solve.stepping import MappedSolver
 
 
 __all__ = [
@@ -784,9 +783,8 @@ def _run_traced(
     mode0 = _where_tree(ok, mode0, dummy)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
     event = diffrax.Event(_Guard(f), root_finder=_EventRootFinder(rtol=tol, atol=tol), direction=True)
-    if f.kind == "appell":
-        solver = MappedSolver(solver, _SplitWatch(f))
-    field = diffrax.ODETerm(_Field(f))
+    maps = _SplitWatch(f) if f.kind == "appell" else None
+    field = _Field(f)
     acc0 = jnp.zeros((nc, 2), dtype)
     reports0 = (
         jnp.full((n, f.s), jnp.nan, dtype),
@@ -822,22 +820,21 @@ def _run_traced(
         args = _Args(params, mode, perm, ok & active)
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=jnp.clip(tsr, ta, t_end)), diffrax.SubSaveAt(t1=True)])
 
-        with no_host_callbacks():
-            sol = diffrax.diffeqsolve(
-                field,
-                solver,
-                t0=ta,
-                t1=t_end,
-                dt0=dt0,
-                y0=y0,
-                args=args,
-                saveat=saveat,
-                stepsize_controller=controller,
-                max_steps=max_steps,
-                adjoint=adjoint,
-                event=event,
-                throw=False,
-            )
+        sol = diffrax_solve(
+            field,
+            solver,
+            maps,
+            y0,
+            args,
+            saveat,
+            controller,
+            t0=ta,
+            t1=t_end,
+            max_steps=max_steps,
+            dt0=dt0,
+            adjoint=adjoint,
+            event=event,
+        )
         stats = jnp.stack(
             [sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]]
         ).astype(jnp.int32)
