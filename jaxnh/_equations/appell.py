@@ -27,8 +27,10 @@ Which velocities are independent (the partition, `jaxnh._equations.split`):
   re-chooses it before any step at which the dependent block has become
   ill-conditioned (its volume below `SWITCH_BELOW` of the best block's);
   a step during which the block's determinant changes sign is rejected and
-  retried shorter. The state is y = [q, v, partition], the partition
-  carried as a float vector of s indices that the step-size control ignores.
+  retried shorter. The state is y = [q, v, dependent], the partition
+  carried as the m dependent indices (ascending, as floats), which the
+  step-size control ignores: m entries rather than a permutation of s, as
+  every entry of the state costs work in each stage of a step.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from jaxnh._equations.split import (
     best_partition,
     block_determinant,
     constraint_matrix,
+    partition_from_dependent,
     partition_quality,
     resolve_independent,
     select,
@@ -93,7 +96,7 @@ class Appell(Formulation):
         return self.independent is None and self.m > 0
 
     def parts(self, y):
-        """(q (s,), v (k,), partition code (s,) or None) of a state y = [q, v, code]."""
+        """(q (s,), v (k,), partition code (m,) or None) of a state y = [q, v, dependent indices]."""
         s, k = self.s, self.s - self.m
         return y[:s], y[s : s + k], (y[s + k :] if self.traced else None)
 
@@ -101,13 +104,14 @@ class Appell(Formulation):
         """The partition in use for the state y."""
         if not self.traced:
             return self.independent if self.independent is not None else tuple(range(self.s))
-        return jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32)
+        return partition_from_dependent(jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32), self.s)
 
     def state(self, q, qd, t, params):
         if not self.traced:
             return jnp.concatenate([q, self.split.independent_of(qd, self.partition(None))])
         perm, _ = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
-        return jnp.concatenate([q, select(qd, perm, self.s - self.m)[0], perm.astype(q.dtype)])
+        k = self.s - self.m
+        return jnp.concatenate([q, select(qd, perm, k)[0], perm[k:].astype(q.dtype)])
 
     def unpack(self, y, t, params):
         q, v, _ = self.parts(y)
@@ -115,7 +119,7 @@ class Appell(Formulation):
 
     def error_mask(self):
         n = self.s + self.s - self.m
-        return (1.0,) * n + (0.0,) * self.s if self.traced else None
+        return (1.0,) * n + (0.0,) * self.m if self.traced else None
 
     def _independent_accelerations(self, q, v, t, params, part):
         mech = self.bound_mech
@@ -185,16 +189,17 @@ class _Partitioning(StepMaps):
 
     def pre(self, t, y, args):
         if not self.switch:
-            return y, jnp.asarray(False)
+            return y, False
         f, params, ok = args
-        q, v, code = f.parts(y)
+        q, v, _ = f.parts(y)
         perm = f.partition(y)
         qd = f.split.velocities(q, v, t, params, perm)
         ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
         switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
         new = jnp.where(switch, best, perm)
-        v_new = jnp.where(switch, select(qd, new, f.s - f.m)[0], v)
-        return jnp.concatenate([q, v_new, new.astype(code.dtype)]), switch
+        k = f.s - f.m
+        v_new = jnp.where(switch, select(qd, new, k)[0], v)
+        return jnp.concatenate([q, v_new, new[k:].astype(y.dtype)]), switch
 
     def post(self, t0, y0, t1, y1, args):
         f, params, ok = args
@@ -209,6 +214,6 @@ class _Partitioning(StepMaps):
         # nothing to watch, and the solve must end at once rather than reject every step
         crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
         if self.switch:
-            return y1, None, crossed, jnp.asarray(False)
+            return y1, None, crossed, False
         # a fixed partition cannot be changed: passing through a singular block fails the solve
-        return y1, None, jnp.asarray(False), crossed
+        return y1, None, False, crossed

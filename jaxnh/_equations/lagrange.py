@@ -99,4 +99,4 @@ class _Projection(StepMaps):
         q, qd = y1[:s], y1[s:]
         qd_new = project_velocities(args[0].mech, q, qd, t1, args[1])
         y_new = jnp.concatenate([q, qd_new])
-        return y_new, y_new - y1, jnp.asarray(False), jnp.asarray(False)
+        return y_new, y_new - y1, False, False

@@ -19,6 +19,13 @@ unchanged, so the result is always the same function, and its derivatives are
 those of the same operations. Fields whose arrays are large are returned
 unchanged: there the arithmetic dominates and scalar code would only grow the
 program.
+
+A floating-point quotient a / b is written as a · (1 / b). XLA's CPU fusion
+does not copy a division into each of the places that read its result, so a
+quotient used twice ends a kernel; a product is copied freely. With the
+partition chosen as data, the variator's Appell field compiled to 5 kernels
+with divisions and to 1 with reciprocals. The product differs from the
+quotient by at most one more rounding (a relative 1.1e-16 in float64).
 """
 
 from __future__ import annotations
@@ -185,12 +192,20 @@ def _const_entries(c) -> np.ndarray:
     return _constant(c, c)
 
 
+def _divide(a, b):
+    """a / b as a · (1 / b) (see the module docstring)."""
+    return lax.mul(a, lax.div(lax.full_like(b, 1), b))
+
+
 def _elementwise(eqn, args):
     shape = tuple(eqn.outvars[0].aval.shape)
     args = [np.broadcast_to(a, shape) for a in args]
     out = np.empty(shape, dtype=object)
+    op = eqn.primitive.bind
+    if eqn.primitive is lax.div_p and jnp.issubdtype(eqn.outvars[0].aval.dtype, jnp.floating):
+        op = _divide
     for idx in np.ndindex(shape):
-        out[idx] = eqn.primitive.bind(*(a[idx] for a in args), **eqn.params)
+        out[idx] = op(*(a[idx] for a in args), **eqn.params)
     return [out]
 
 

@@ -127,10 +127,27 @@ def best_dependent(A) -> tuple[jax.Array, jax.Array]:
 
 
 def partition_from_dependent(dep, s: int):
-    """The permutation (s,) int32: independent indices ascending, then the dependent ones ascending."""
-    is_dep = jnp.zeros((s,), bool).at[dep].set(True)
-    key = jnp.where(is_dep, s, 0) + jnp.arange(s)
-    return jnp.argsort(key).astype(jnp.int32)
+    """The permutation (s,) int32: independent indices ascending, then the dependent ones
+    ascending, from the m dependent indices `dep` (in any order).
+
+    Written with comparisons and running sums, not a sort, so that it fuses with the
+    arithmetic around it (the vector field decodes the partition at every evaluation)."""
+    dep = jnp.asarray(dep, jnp.int32)
+    m = dep.shape[0]
+    cols = jnp.arange(s, dtype=jnp.int32)
+    is_dep = jnp.any(dep[:, None] == cols[None, :], axis=0) if m else jnp.zeros((s,), bool)
+    indep = ~is_dep
+    out = []
+    for mask, count in ((indep, s - m), (is_dep, m)):
+        # rank[j]: how many entries of the group come before j
+        ranks, acc = [], jnp.zeros((), jnp.int32)
+        for j in range(s):
+            ranks.append(acc)
+            acc = acc + mask[j].astype(jnp.int32)
+        rank = jnp.stack(ranks)
+        hit = mask[None, :] & (rank[None, :] == jnp.arange(count, dtype=jnp.int32)[:, None])
+        out.append(jnp.sum(jnp.where(hit, cols[None, :], 0), axis=1).astype(jnp.int32))
+    return jnp.concatenate(out)
 
 
 def best_partition(mech: Mechanism, q, qd, t, params, s: int, m: int):

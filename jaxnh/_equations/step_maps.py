@@ -9,11 +9,10 @@ applies them (`jaxnh._solve.stepping.MappedSolver`).
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Optional, Union
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 
 __all__ = ["StepMaps", "REJECT_ERROR"]
@@ -34,12 +33,17 @@ class StepMaps(eqx.Module):
     `post(t0, y0, t1, y1, args) -> (y1, correction, reject, fail)`: the state a
     step ends at; `correction` (like y, or None) is added to the error estimate;
     `reject` (bool) forces a rejection; `fail` (bool) stops the solve as failed
-    (diffrax's `RESULTS.singular`, which the formulation explains).
+    (diffrax's `RESULTS.singular`, which the formulation explains). A map that
+    can never reject, or never fail, returns the Python `False` there: the
+    integrator then leaves that test out of the step.
+
     """
 
     # positional-only: the integrators call the maps positionally, and overrides name their states as they like
-    def pre(self, t, y, args, /) -> tuple[Any, jax.Array]:
-        return y, jnp.asarray(False)
+    def pre(self, t, y, args, /) -> tuple[Any, Union[jax.Array, bool]]:
+        return y, False
 
-    def post(self, t0, y0, t1, y1, args, /) -> tuple[Any, Optional[Any], jax.Array, jax.Array]:
-        return y1, None, jnp.asarray(False), jnp.asarray(False)
+    def post(
+        self, t0, y0, t1, y1, args, /
+    ) -> tuple[Any, Optional[Any], Union[jax.Array, bool], Union[jax.Array, bool]]:
+        return y1, None, False, False

@@ -685,7 +685,7 @@ class _SplitWatch(StepMaps):
             A = jax.jacfwd(lambda x: f.mech.constraint(y[0], x, t, args.params))(jnp.zeros((f.s,), y[0].dtype))
             det.append(block_determinant(A, args.perm, f.k))
         crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & args.ok
-        return y1, None, jnp.asarray(False), crossed
+        return y1, None, False, crossed
 
 
 def _initial_checks(f: _Friction, q, qd, t, params):

@@ -27,7 +27,8 @@ class ODE(eqx.Module):
         term: `diffrax.ODETerm` of the formulation's vector field; call it with
             `args=ode.args`.
         y0: the initial state of the formulation, one flat vector: for Appell's
-            equations [q, v, partition code], for Lagrange's [q, qd].
+            equations [q, v, dependent indices] (the indices only when the partition
+            is chosen automatically), for Lagrange's [q, qd].
         args: the vector field's arguments: (formulation, params, True).
         form: the bound formulation.
 
