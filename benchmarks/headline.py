@@ -5,7 +5,11 @@ each with its error against the closed form:
 
 * `nh.simulate(...)`, a plain call as the README makes it (default
   formulation "appell", default solver), and the same under `jax.jit`;
-* eq. (9) written by hand, `diffrax.diffeqsolve` with `diffrax.Tsit5`, jitted;
+* eq. (9) written by hand, `diffrax.diffeqsolve` with `diffrax.Tsit5`, jitted,
+  its report times closed over as constants (as a script writes it), and the
+  same program taking the report times as an argument (as `simulate`, which
+  takes them as data, must: XLA then cannot fold them into the step loop, which
+  on a CPU costs a hand-written solve itself about 1.6×);
 * jaxnh's Appell field from `nh.ode` in the user's `diffrax.Tsit5` (with the
   formulation's step maps and error norm), jitted: its cost per step against
   the hand field's;
@@ -41,6 +45,7 @@ from .mechanisms import variator as VV  # noqa: E402
 PLAIN = "jaxnh simulate (defaults)"
 JIT = "jaxnh jit(simulate)"
 HAND = "eq. (9) by hand, diffrax Tsit5"
+HAND_TS = "eq. (9) by hand, diffrax Tsit5, ts as an argument"
 FIELD = "jaxnh Appell field (nh.ode), diffrax Tsit5"
 SCIPY = "SciPy RK45, lambdified SymPy"
 NUMBA = "numba Tsit5 loop (limit)"
@@ -80,6 +85,27 @@ def contenders(batch: int):
     args = tuple(jnp.asarray(a) for a in VV.EQ9_ARGS)
     out[HAND] = (
         lambda: jax.block_until_ready(hand(args)),
+        lambda r: (*VV.eq9_unpack(r[0], ts), r[1]),
+    )
+
+    @jax.jit
+    def hand_ts(args, ts_):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(VV.eq9),
+            diffrax.Tsit5(),
+            ts_[0],
+            ts_[-1],
+            None,
+            jnp.asarray(VV.EQ9_Y0),
+            args=args,
+            saveat=diffrax.SaveAt(ts=ts_),
+            stepsize_controller=pid,
+            max_steps=100_000,
+        )
+        return sol.ys, sol.stats["num_steps"]
+
+    out[HAND_TS] = (
+        lambda: jax.block_until_ready(hand_ts(args, ts)),
         lambda r: (*VV.eq9_unpack(r[0], ts), r[1]),
     )
 
@@ -164,6 +190,7 @@ def main(argv=None):
     ratios = {
         "simulate / hand": ratio(PLAIN, HAND),
         "jit(simulate) / hand": ratio(JIT, HAND),
+        "jit(simulate) / hand with ts as an argument": ratio(JIT, HAND_TS),
         "field per step / hand per step": ratio(FIELD, HAND, per_step=True),
         "SciPy / simulate": ratio(SCIPY, PLAIN),
         "gradient / jit(simulate)": ratio(GRAD, JIT),

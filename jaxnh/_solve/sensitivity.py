@@ -188,6 +188,7 @@ def _plain(
     dt0,
     error_mask,
     norm=None,
+    adjoint: diffrax.AbstractAdjoint = diffrax.ForwardMode(),
 ):
     if norm is not None and hasattr(controller, "norm"):  # (a constant step size has no error norm)
         controller = eqx.tree_at(lambda c: c.norm, controller, norm)
@@ -204,6 +205,7 @@ def _plain(
         max_steps=max_steps,
         dt0=dt0,
         error_mask=None if norm is not None else error_mask,
+        adjoint=adjoint,
     )
     return sol.ts, sol.ys, sol.result, sol.stats
 
@@ -225,6 +227,10 @@ def _solve(
     error_mask,
     error_control,
 ):
+    # the primal solve is never differentiated by JAX (the rule below is): diffrax's default
+    # adjoint, under which its Runge–Kutta methods evaluate their stages without the per-stage
+    # loop that ForwardMode asks for (variator: 13 kernels per stage fewer, 1.8x faster). The
+    # rule's own solves keep ForwardMode, so that a second derivative can go through them.
     return _plain(
         args,
         y0,
@@ -238,6 +244,7 @@ def _solve(
         max_steps=max_steps,
         dt0=dt0,
         error_mask=error_mask,
+        adjoint=diffrax.RecursiveCheckpointAdjoint(),
     )
 
 
