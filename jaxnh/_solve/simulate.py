@@ -660,6 +660,7 @@ def _run_traced(
     # and separately the state at the end (or where a failed solve stopped). BacksolveAdjoint
     # cannot save `subs`: it gets the reports alone, and a failure is diagnosed at the last one.
     diagnose = saveat is None and not isinstance(adjoint, diffrax.BacksolveAdjoint)
+    own_saveat = saveat is None
     # a solve whose initial check failed has zero length: no step is taken, and every report is
     # the (zero) stand-in state at t0, which the outputs replace by NaN below
     t_end = jnp.where(ok, tsr[-1], t0r)
@@ -730,7 +731,7 @@ def _run_traced(
     if diagnose:
         t_end, y_end = out_ts[1][-1], jax.tree_util.tree_map(lambda x: x[-1], ys[1])
         out_ts, ys = out_ts[0], ys[0]
-    if not isinstance(out_ts, (list, tuple)) and out_ts.shape == tsr.shape:  # the reports' times, not t0
+    if own_saveat:  # the reports' times, not t0
         out_ts = jnp.where(ok, out_ts, tsr)
     # rows the solve did not reach (diffrax fills them with inf: SaveAt(steps=True) beyond the last
     # step, reports after a terminating event) are evaluated at the initial state and then set to inf
