@@ -242,6 +242,29 @@ def test_params_that_are_not_a_pytree_are_refused_by_name():
             nh.simulate(MECH, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS)
 
 
+def test_params_may_hold_strings_and_functions_beside_numbers():
+    """Non-numeric leaves (a label, a ratio law as a function) are static: the mechanism's checks
+    and the solve see them as they are, and the motion is that of the shipped model with the same
+    numbers (two solves at rtol 1e-10 whose steps differ: they agree to the integration error,
+    bounded here by 100 rtol)."""
+
+    def T(q, qd, t, p):
+        return 0.5 * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2)
+
+    def rolling(q, qd, t, p):
+        return jnp.stack([p["U21"](t) * qd[0] - qd[1]])
+
+    def torques(q, qd, t, p):
+        return jnp.stack([p["M1"], p["M2"]])
+
+    mech = nh.Mechanism(T, constraints=rolling, forces=torques)
+    law = params().U21
+    p = {"J1": 0.02, "J2": 0.05, "M1": 0.3, "M2": -0.1, "U21": law, "label": "variator, Fourier ratio law"}
+    sol = nh.simulate(mech, p, jnp.zeros(2), jnp.array([2.0, 2.0]), TS, rtol=1e-10, atol=1e-12)
+    assert sol.status == nh.STATUS.successful
+    np.testing.assert_allclose(sol.qd[-1, 1], final_speed(0.05), rtol=100 * 1e-10)
+
+
 @pytest.mark.parametrize("method", ["lagrange", "appell"])
 def test_a_terminating_event_with_each_formulation(method):
     """φ1 reaches 1 rad at t_e: the reports after t_e are NaN, those before finite, status success

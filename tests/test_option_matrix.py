@@ -301,9 +301,9 @@ def expect(case: Case) -> Expect:
         # diffrax: an implicit solver's root finder takes its tolerances from an adaptive controller
         return Expect("refused", ValueError, ("fixed step size controller", "implicit solver", "PIDController"))
     if adjoint == "backsolve":
-        if c["saveat"] == "dense_only":  # (diffrax's words: the SaveAt(dense=True) given has no subs)
-            return Expect("refused", NotImplementedError, ("adjoint=BacksolveAdjoint()", "SaveAt"))
-        if c["saveat"] in ("dense", "steps"):
+        if c["saveat"] in ("dense", "dense_only"):  # (simulate, before the solve)
+            return Expect("refused", ValueError, ("adjoint=diffrax.BacksolveAdjoint()", "dense output"))
+        if c["saveat"] == "steps":
             return Expect("refused", NotImplementedError, ("adjoint=BacksolveAdjoint()", "saveat=SaveAt("))
         if c["event"] != "none":
             return Expect("refused", NotImplementedError, ("BacksolveAdjoint", "events"))

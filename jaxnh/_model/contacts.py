@@ -173,7 +173,7 @@ def check_contact_shapes(contacts: tuple, n_nonholonomic: int, q, qd, t, params)
             if not callable(f):
                 continue
             try:
-                out = jax.eval_shape(f, q, qd, t, params)
+                out = eqx.filter_eval_shape(f, q, qd, t, params)
             except Exception as e:  # re-raise with the function named
                 raise type(e)(f"Mechanism: contacts[{i}].{name} failed when called with (q, qd, t, params): {e}") from e
             if getattr(out, "shape", None) not in ((), (1,)):

@@ -123,7 +123,7 @@ class Mechanism(eqx.Module):
 
     def n_constraints(self, q, qd, t, params) -> int:
         """Number m of velocity constraints (static): nonholonomic plus differentiated holonomic ones."""
-        return jax.eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
+        return eqx.filter_eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
 
     def constraint(self, q, qd, t, params):
         """Velocity constraints `[c(q, qd, t), ġ(q, qd, t)]`, shape (m,); empty without constraints."""
@@ -201,7 +201,7 @@ class Mechanism(eqx.Module):
 
         def out(fn, name, *args):
             try:
-                return jax.eval_shape(fn, *args)
+                return eqx.filter_eval_shape(fn, *args)
             except Exception as e:  # re-raise with the function named
                 raise type(e)(f"Mechanism `{name}` failed when called with q, qd of shape ({s},): {e}") from e
 

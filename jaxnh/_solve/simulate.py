@@ -691,6 +691,12 @@ def _run_traced(
         )
     args = (form, params, ok)
     maps = form.step_maps()
+    if dense and isinstance(adjoint, diffrax.BacksolveAdjoint):
+        raise ValueError(
+            "adjoint=diffrax.BacksolveAdjoint() cannot differentiate dense output (saveat=SaveAt(dense=True)): "
+            "diffrax's backsolve adjoint saves at given times only; use the default adjoint or "
+            "diffrax.RecursiveCheckpointAdjoint(), or save at report times"
+        )
     if maps is not None and isinstance(adjoint, diffrax.BacksolveAdjoint):
         raise ValueError(
             f"adjoint=diffrax.BacksolveAdjoint() cannot differentiate through the maps method={form.name!r} applies "
