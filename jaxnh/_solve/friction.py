@@ -195,17 +195,20 @@ class ContactDiagnostics(eqx.Module):
         return out
 
     def summary(self) -> str:
-        """A table of the diagnostics of each contact, one line each."""
+        """A table of the diagnostics of each contact, one line each: transitions (changes),
+        time slipping (s) and its share of the run (%), slip distance (m), energy dissipated by
+        slip (J), peak |λ|/(μs N) while rolling, and the smallest stick margin (N)."""
+        # (at most 90 columns for one contact named in 10 characters: a page or a terminal shows it whole)
         lines = [
-            f"{'contact':<14} {'transitions':>11} {'slip time s':>12} {'slip %':>7} {'slip dist m':>12} "
-            f"{'dissipated J':>13} {'peak |λ|/μsN':>13} {'min margin N':>13}"
+            f"{'contact':<10} {'changes':>7} {'slip s':>9} {'slip %':>6} {'slip m':>9} "
+            f"{'lost J':>9} {'peak |λ|/μsN':>12} {'margin N':>10}"
         ]
         for j, name in enumerate(self.names):
             n = len(self.transitions(j))
             lines.append(
-                f"{name:<14} {n:>11d} {float(self.slip_time[j]):>12.6g} {100 * float(self.slip_fraction[j]):>7.3g} "
-                f"{float(self.slip_distance[j]):>12.6g} {float(self.dissipated_energy[j]):>13.6g} "
-                f"{float(self.peak_utilisation[j]):>13.6g} {float(self.min_margin[j]):>13.6g}"
+                f"{name:<10} {n:>7d} {float(self.slip_time[j]):>9.4g} {100 * float(self.slip_fraction[j]):>6.3g} "
+                f"{float(self.slip_distance[j]):>9.4g} {float(self.dissipated_energy[j]):>9.4g} "
+                f"{float(self.peak_utilisation[j]):>12.4g} {float(self.min_margin[j]):>10.4g}"
             )
         return "\n".join(lines)
 

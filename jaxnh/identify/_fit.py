@@ -171,10 +171,14 @@ class FitResult(Estimates):
         """
         scale, unit = residual_unit
         lines = self.table_lines(truth, units=units)
+        # one line each, so that the summary fits a page or a terminal of 100 columns
         lines.append(
             f"  rms residual {scale * self.rms_residual:.4g}{unit} ("
             + ", ".join(f"{c} {scale * v:.4g}" for c, v in self.rms_by_channel.items())
-            + "); noise σ "
+            + ")"
+        )
+        lines.append(
+            "  noise σ "
             + ", ".join(f"{c} {scale * v:.4g}" for c, v in self.noise.items())
             + f"{unit}; s² = {self.chi2_dof:.3f}"
         )
