@@ -8,8 +8,7 @@ each with its error against the closed form:
 * eq. (9) written by hand, `diffrax.diffeqsolve` with `diffrax.Tsit5`, jitted,
   its report times closed over as constants (as a script writes it), and the
   same program taking the report times as an argument (as `simulate`, which
-  takes them as data, must: XLA then cannot fold them into the step loop, which
-  on a CPU costs a hand-written solve itself about 1.6×);
+  takes them as data, must: XLA then cannot fold them into the step loop);
 * jaxnh's Appell field from `nh.ode` in the user's `diffrax.Tsit5` (with the
   formulation's step maps and error norm), jitted: its cost per step against
   the hand field's;

@@ -176,7 +176,24 @@ def block_determinant(A, part: Partition, k: int):
     if m == 0:
         return jnp.ones((), A.dtype)
     _, AD = _columns(unit_rows(A), part, k)
-    return AD[0, 0] if m == 1 else jnp.linalg.det(AD)
+    return _det(AD)
+
+
+def _det(D):
+    """det of a square matrix: written out for m ≤ 3 (arithmetic that fuses with what is around it,
+    where an LU factorisation is a kernel of its own at every step), LU above."""
+    m = D.shape[0]
+    if m == 1:
+        return D[0, 0]
+    if m == 2:
+        return D[0, 0] * D[1, 1] - D[0, 1] * D[1, 0]
+    if m == 3:
+        return (
+            D[0, 0] * (D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1])
+            - D[0, 1] * (D[1, 0] * D[2, 2] - D[1, 2] * D[2, 0])
+            + D[0, 2] * (D[1, 0] * D[2, 1] - D[1, 1] * D[2, 0])
+        )
+    return jnp.linalg.det(D)
 
 
 def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int, A=None):
