@@ -322,19 +322,6 @@ def expect(case: Case) -> Expect:
             "neither the adjoint nor the fix",
         )
     if (
-        c["transform"] == "grad"
-        and adjoint == "direct"
-        and c["formulation"] == "baumgarte"
-        and c["solver"] in ("default", "dopri8")  # (Lagrange's default at rtol 1e-8 is Dopri8)
-    ):
-        return Expect(
-            "xfail",
-            AssertionError,
-            reason="stabilization='baumgarte' with diffrax.Dopri8 and diffrax.DirectAdjoint: jax.grad is wrong "
-            "(d phi1'(2 s)/dJ2 = -81.976 against -82.200 by the closed form, by RecursiveCheckpointAdjoint "
-            "and by central differences) while the status is success",
-        )
-    if (
         c["solver"] == "kvaerno5"
         and c["controller"] != "constant"
         and c["event"] == "real"
@@ -667,6 +654,8 @@ def params(cases: list[Case], *marks) -> list:
 KNOWN_FAILURES: list[Case] = [
     {**DEFAULTS, **c}
     for c in (
+        # fixed, kept as a case that must work: with Dopri8 and DirectAdjoint the gradient was 0.3 % off
+        # while the field tested the initial checks' flag (no longer reproduced since it does not)
         {"formulation": "baumgarte", "adjoint": "direct", "transform": "grad"},
         {"formulation": "baumgarte", "saveat": "t1", "adjoint": "backsolve", "transform": "grad"},
         {"event": "bool", "saveat": "steps"},

@@ -79,7 +79,10 @@ def analyse(stats: dict, labels, log_mask, rank_tol: float) -> Identifiability:
         d = d / np.max(np.abs(d))
         if d[np.argmax(np.abs(d))] < 0:
             d = -d
-        comp = {labels[j]: float(d[j]) for j in np.argsort(-np.abs(d)) if abs(d[j]) >= SHOW_COMPONENT and c[j] > 0}
+        # largest components first; components equal to 6 digits (a pure scaling: all ±1) keep the
+        # parameters' order, so that rounding in the solve cannot swap the names of a ratio
+        order = sorted(range(len(d)), key=lambda j: (-round(float(abs(d[j])), 6), j))
+        comp = {labels[j]: float(d[j]) for j in order if abs(d[j]) >= SHOW_COMPONENT and c[j] > 0}
         if not comp:
             continue
         parts = []
