@@ -191,8 +191,8 @@ class _Partitioning(StepMaps):
 
     # Both maps are flattened to scalar operations for small mechanisms, as the vector field is
     # (`jaxnh._equations.scalarize`): they run at every step, and unflattened each of their tiny
-    # array operations is a kernel of its own (variator: 31 kernels per step, against 29 for all
-    # of a hand-written solve's step).
+    # array operations is a kernel of its own (variator: a step of simulate launched 60 kernels
+    # with them unflattened, 51 flattened, against 29 for a step of the hand-written eq. (9)).
 
     def pre(self, t, y, args):
         if not self.switch:
@@ -230,6 +230,6 @@ class _Partitioning(StepMaps):
             q = f.parts(y)[0]
             qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(q)
             det.append(block_determinant(constraint_matrix(f.mech, q, qd, t, params), part, f.s - f.m))
-        # after a failed initial check the state is a zero stand-in under a zero field:
-        # nothing to watch, and the solve must end at once rather than reject every step
+        # after a failed initial check (`ok` False: simulate's solve then has zero length, and a
+        # user's own diffeqsolve of `ode` gets a zero stand-in) nothing is watched
         return ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
