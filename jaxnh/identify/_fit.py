@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import textwrap
 import time
 import warnings
 from typing import Any, Optional, Sequence
@@ -182,13 +183,20 @@ class FitResult(Estimates):
             + ", ".join(f"{c} {scale * v:.4g}" for c, v in self.noise.items())
             + f"{unit}; s² = {self.chi2_dof:.3f}"
         )
-        lines.append("  " + self.lack_of_fit.message)
+        lines.append(_wrapped(self.lack_of_fit.message))
         lines.append(
-            f"  {self.optimizer}: {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT CONVERGED'}: {self.message}; {self.elapsed:.1f} s"
+            _wrapped(
+                f"{self.optimizer}: {self.iterations} iterations, "
+                f"{'converged' if self.converged else 'NOT CONVERGED'}: {self.message}; {self.elapsed:.1f} s"
+            )
         )
         lines += self.identifiability_lines()
         return "\n".join(lines)
+
+
+def _wrapped(text: str) -> str:
+    """`text` indented by two spaces and wrapped at 100 columns (a page or a terminal shows it whole)."""
+    return textwrap.fill(text, width=100, initial_indent="  ", subsequent_indent="    ", break_long_words=False)
 
 
 def _as_list(x):
