@@ -227,10 +227,9 @@ def _solve(
     error_mask,
     error_control,
 ):
-    # the primal solve is never differentiated by JAX (the rule below is): diffrax's default
-    # adjoint, under which its Runge–Kutta methods evaluate their stages without the per-stage
-    # loop that ForwardMode asks for (variator: 13 kernels per stage fewer, 1.8x faster). The
-    # rule's own solves keep ForwardMode, so that a second derivative can go through them.
+    # the primal solve is never differentiated by JAX (the rule below is), so it takes diffrax's
+    # default adjoint, the one a plain diffeqsolve uses; the rule's own solves keep ForwardMode,
+    # so that a second derivative can go through them
     return _plain(
         args,
         y0,
