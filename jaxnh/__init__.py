@@ -46,7 +46,6 @@ from jaxnh._equations.step_maps import StepMaps  # noqa: E402
 from jaxnh._model.contacts import FrictionContact  # noqa: E402
 from jaxnh._model.mechanism import Mechanism  # noqa: E402
 from jaxnh._solve.friction import ContactDiagnostics  # noqa: E402
-from jaxnh._solve.holonomic import HolonomicMechanism  # noqa: E402
 from jaxnh._solve.ode import ODE, ode  # noqa: E402
 from jaxnh._solve.sensitivity import choose_adjoint, FORWARD_MAX_PARAMETERS, ForwardSensitivity  # noqa: E402
 from jaxnh._solve.simulate import default_solver, RECORDABLE, simulate, STABILIZATIONS  # noqa: E402
@@ -94,7 +93,6 @@ __all__ = [
     "ContactDiagnostics",
     "stick_margin",
     "StickMargin",
-    "HolonomicMechanism",
     "enable_compilation_cache",
     "Appell",
     "Lagrange",

@@ -159,5 +159,7 @@ def test_constraints_and_energy_hold(runs):
 def test_nonlinear_appell_with_newton_pitch_equals_lagrange(runs):
     """The 7-coordinate Appell model (pitch by Newton) along the kicked run: ~50 s to compile."""
     q, qd = B.upright(5.0, P)
-    sol = B.system().simulate(P, q, qd.at[B.ROLL].set(0.5), TS, method="appell", rtol=1e-10, atol=1e-12, solver=SOLVER)
+    sol = nh.simulate(
+        B.system(), P, q, qd.at[B.ROLL].set(0.5), TS, method="appell", rtol=1e-10, atol=1e-12, solver=SOLVER
+    )
     np.testing.assert_allclose(sol.q, runs["kick5"].q, atol=1e-7)

@@ -53,9 +53,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.host import as_data, as_float, as_time
 from jaxnh._base.linalg import solve_spd, value_and_jacfwd
 from jaxnh._base.status import is_traced
-from jaxnh._equations.base import as_data, as_float, as_time
 from jaxnh._equations.split import (
     best_partition,
     choose_independent,
@@ -146,7 +146,7 @@ def linearize(
             `E = Bᵀ (∂S/∂q̈ − Q)` with the mechanism's acceleration energy S
             (the same as "lagrange" when it has none).
         complete: optional `complete(q, t, params) -> q` applied to every
-            perturbed configuration, e.g. `HolonomicMechanism.restore` to
+            perturbed configuration, e.g. `Mechanism.restore` to
             keep holonomic constraints satisfied.
         accelerations: the independent accelerations v̇ (k,) at the
             operating point, if known (zero for an equilibrium or a steady

@@ -34,6 +34,7 @@ __all__ = [
     "solve_psd_min_norm",
     "solve_square",
     "value_and_jacfwd",
+    "pick",
 ]
 
 UNROLL_MAX = 8
@@ -219,3 +220,8 @@ def value_and_jacfwd(f, x):
     f, and of f per unit of each x. Works under `jit`, `vmap` and `grad`."""
     jac = jax.vmap(lambda dx: jax.jvp(f, (x,), (dx,)), in_axes=1, out_axes=(None, 1))
     return jac(jnp.eye(x.shape[0], dtype=x.dtype))
+
+
+def pick(x, indices):
+    """x[indices] for a static tuple of indices, without a gather."""
+    return jnp.stack([x[i] for i in indices]) if indices else x[:0]

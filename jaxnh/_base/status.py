@@ -90,6 +90,13 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "stays off it. Pass a q0 on the constraints: solve g(q0) = 0 for the dependent coordinates "
         "(`mech.holonomic_residual(q0, t0, params)` tells how far off it is)."
     )
+    holonomic_branch = (
+        "The dependent coordinates of q0 are not the solution of g(q0, t0) = 0 that Newton's method "
+        "reaches from the mechanism's `guess` (zeros by default): the simulation solves them afresh at "
+        "every step from that guess, so it would follow another branch of the constraints than q0 "
+        "lies on. Give `guess=` on the branch of q0 (e.g. the pendulum bob below its pivot), or "
+        "compute q0 with `mech.coordinates(q0_independent, t0, params)`."
+    )
     acceleration_energy_mismatch = (
         "The acceleration energy S (`acceleration_energy`) disagrees with the kinetic energy T at "
         "the initial state. Appell's equations need ∂S/∂qdd = d/dt(∂T/∂qd) − ∂T/∂q, that is "
@@ -156,6 +163,7 @@ class InvalidInitialState(SimulationError, ValueError):
 
 INPUT_FAILURES = (
     "holonomic_violated",
+    "holonomic_branch",
     "nonlinear_constraints_unsolved",
     "non_finite_input",
     "bad_report_times",

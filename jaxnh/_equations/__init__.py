@@ -12,8 +12,9 @@ import jax
 import jax.core
 import jax.numpy as jnp
 
+from jaxnh._base.host import as_data, as_float, as_time
 from jaxnh._equations.appell import Appell
-from jaxnh._equations.base import as_data, as_float, as_time, Formulation, multipliers_from_accelerations
+from jaxnh._equations.base import Formulation, multipliers_from_accelerations
 from jaxnh._equations.lagrange import Lagrange
 from jaxnh._equations.split import choose_independent, VelocitySplit
 from jaxnh._equations.substituted import Substituted

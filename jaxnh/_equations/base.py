@@ -111,27 +111,3 @@ def multipliers_from_accelerations(mech, q, qd, qdd, t, params):
     R = mm(M, qdd) + h - mech.generalized_forces(q, qd, t, params)
     A, _ = constraint_terms(mech, q, qd, t, params)
     return solve_psd_min_norm(mm(A, A.T), mm(A, R))
-
-
-def as_float(x):
-    """`x` as an array of a floating dtype (the default float for integer input)."""
-    x = jnp.asarray(x)
-    return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.result_type(float))
-
-
-def as_data(params, like):
-    """`params` with its Python `float` leaves as arrays of the floating dtype of `like`.
-
-    jaxnh compiles once per structure of the parameters, not per value: a
-    Python float would otherwise be a compile-time constant (equinox treats
-    non-array leaves as static), so every new value, e.g. in a loop over J2,
-    would compile a new program. Other leaves (arrays, ints, bools, strings,
-    callables) are left as they are.
-    """
-    dtype = jnp.result_type(like, jnp.float32)
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype) if type(x) is float else x, params)
-
-
-def as_time(t, like):
-    """Time as a scalar array with the floating dtype of `like`."""
-    return jnp.asarray(t, dtype=jnp.result_type(like, jnp.float32))

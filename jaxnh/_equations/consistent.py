@@ -7,8 +7,8 @@ import jax
 import jax.core
 import jax.numpy as jnp
 
+from jaxnh._base.host import as_data, as_float, as_time
 from jaxnh._base.linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
-from jaxnh._equations.base import as_data, as_float, as_time
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
 from jaxnh._model.mechanism import Mechanism
 

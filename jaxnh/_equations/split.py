@@ -49,7 +49,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from jaxnh._base.linalg import solve_square, value_and_jacfwd
+from jaxnh._base.linalg import pick, solve_square, value_and_jacfwd
 from jaxnh._model.mechanism import check_independent, Mechanism
 
 
@@ -232,11 +232,6 @@ def _columns(A, part: Partition, k: int):
 
 def _stack_cols(A, idx):
     return jnp.stack([A[:, i] for i in idx], axis=1) if idx else A[:, :0]
-
-
-def pick(x, indices):
-    """x[indices] for a static tuple of indices, without a gather."""
-    return jnp.stack([x[i] for i in indices]) if indices else x[:0]
 
 
 def select(x, part: Partition, k: int):

@@ -15,6 +15,8 @@ turn these functions into equations of motion by automatic differentiation.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import Callable, Optional, Sequence
 
 import equinox as eqx
@@ -27,6 +29,11 @@ from jaxnh._base.compile import one_shot_jit
 from jaxnh._base.linalg import value_and_jacfwd
 from jaxnh._model.checks import consistency_tolerance, consistent, nearly_dependent
 from jaxnh._model.contacts import as_contacts, check_contact_shapes, check_contacts
+from jaxnh._model.holonomic import check_dependent, Elimination, project
+
+
+def _as_indices(x):
+    return None if x is None else tuple(int(i) if isinstance(i, np.integer) else i for i in x)
 
 
 __all__ = ["Mechanism"]
@@ -64,8 +71,8 @@ class Mechanism(eqx.Module):
             |g| reached 2.0e-2 m² with `method="lagrange"`, 5.6e-6 with
             `"appell"` and 1.2e-6 with `stabilization="projection"`, which
             maps the velocities back onto ġ = 0 after every step).
-            `jaxnh.HolonomicMechanism.reduced` eliminates the dependent
-            coordinates exactly by Newton's method.
+            Give `dependent` to eliminate the dependent coordinates exactly
+            instead.
         acceleration_energy: Gibbs–Appell acceleration energy
             `S(q, qd, qdd, t, params) -> scalar` (J/s²); used by
             `method="appell"` when given. Only its part that depends on
@@ -86,6 +93,24 @@ class Mechanism(eqx.Module):
             written as slip velocities (m/s); they hold while the force they
             need is inside the static friction cone and slip otherwise
             (see the friction page of the documentation).
+        dependent: indices of h coordinates solved from the h holonomic
+            constraints (the block `∂g/∂q_D` must be invertible along the
+            motion). `simulate` (and so `fit` and `sweep`) then integrates only
+            the other s − h coordinates, recovers these by Newton's method at
+            every evaluation, so that g = 0 holds to Newton's accuracy and
+            cannot drift, and reports all s coordinates. q0's dependent
+            coordinates must be the solution Newton's method reaches from
+            `guess` (`restore` computes them). `reduced` gives the mechanism
+            in the independent coordinates, `differentiated` the one without
+            elimination. Default None: the holonomic constraints are imposed
+            as ġ = 0, as described under `holonomic`.
+        guess: `guess(q_I, t, params) -> (h,)`, where Newton's method starts
+            for the dependent coordinates (default zeros, the reference
+            configuration); it picks the branch of g = 0 the motion stays on.
+        newton_iterations: Newton iterations for the dependent coordinates
+            (quadratic convergence: 8 reach rounding from a reasonable start).
+        newton_tol: largest accepted |g| after them (default √eps); a miss
+            makes the state NaN, which `simulate` reports as a failure.
     """
 
     kinetic: Callable = eqx.field(static=True)
@@ -98,6 +123,10 @@ class Mechanism(eqx.Module):
     independent: Optional[tuple] = eqx.field(static=True, default=None)
     nonlinear_constraints: bool = eqx.field(static=True, default=False)
     contacts: tuple = eqx.field(static=True, default=(), converter=as_contacts)
+    dependent: Optional[tuple] = eqx.field(static=True, default=None, converter=_as_indices)
+    guess: Optional[Callable] = eqx.field(static=True, default=None)
+    newton_iterations: int = eqx.field(static=True, default=8)
+    newton_tol: Optional[float] = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if not callable(self.kinetic):
@@ -118,6 +147,16 @@ class Mechanism(eqx.Module):
         check_contacts(self.contacts)
         if self.contacts and self.constraints is None:
             raise ValueError("Mechanism: `contacts` hold rows of `constraints`, but no `constraints` were given")
+        check_dependent(self.dependent, self.holonomic, self.independent)
+        if self.dependent is not None and self.contacts:
+            raise ValueError(
+                "Mechanism: friction `contacts` with eliminated `dependent` coordinates are not supported; "
+                "leave out `dependent` (the holonomic constraints are then imposed as ġ = 0)"
+            )
+        if self.guess is not None and not callable(self.guess):
+            raise TypeError(f"Mechanism: `guess` must be a function guess(q_I, t, params), got {self.guess!r}")
+        if not isinstance(self.newton_iterations, int) or self.newton_iterations < 1:
+            raise ValueError(f"Mechanism: `newton_iterations` must be an integer ≥ 1; got {self.newton_iterations!r}")
 
     # --- evaluation helpers used by the formulations -------------------------
 
@@ -147,6 +186,62 @@ class Mechanism(eqx.Module):
         if self.holonomic is None:
             return jnp.zeros((0,), jnp.result_type(q))
         return jnp.asarray(self.holonomic(q, t, params))
+
+    # --- holonomic constraints solved for dependent coordinates ---------------
+
+    def _elimination(self) -> Elimination:
+        if self.dependent is None or self.holonomic is None:
+            raise ValueError(
+                "Mechanism: this needs `dependent=` (the coordinates solved from `holonomic`); none were given"
+            )
+        return Elimination(self.holonomic, self.dependent, self.guess, self.newton_iterations, self.newton_tol)
+
+    def free_coordinates(self, s: int) -> tuple:
+        """Indices of the s − h independent coordinates (all s without `dependent`)."""
+        dep = self.dependent or ()
+        return tuple(i for i in range(s) if i not in dep)
+
+    def coordinates(self, q_ind, t, params, start=None):
+        """All coordinates q (s,) from the independent ones q_I (s − h,), in their units.
+
+        The dependent coordinates solve g(q, t) = 0 by Newton's method from
+        `start` (default `guess`, else zeros). Differentiable in q_I, t (s) and
+        the array leaves of params, to any order, by the implicit function
+        theorem; NaN if Newton's method missed `newton_tol`.
+        """
+        return self._elimination().coordinates(q_ind, t, params, start)
+
+    def full_state(self, q_ind, qd_ind, t, params):
+        """(q, qd), each (s,), from the independent coordinates q_I and their rates (g = 0, ġ = 0)."""
+        return self._elimination().state(q_ind, qd_ind, t, params)
+
+    def restore(self, q, t, params):
+        """q (s,) with its dependent coordinates re-solved from the others (Newton from q's own q_D)."""
+        return self._elimination().restore(q, t, params)
+
+    def project(self, q, t, params, iterations: int = 4):
+        """The coordinates nearest to q (Euclidean, mixed units weighted alike) with g(q, t) = 0.
+
+        Gauss–Newton, `iterations` steps; needs `holonomic` only. Use it on
+        the drift of g in a simulation without `dependent`.
+        """
+        if self.holonomic is None:
+            raise ValueError("Mechanism.project: the mechanism has no `holonomic` constraints to project onto")
+        return project(self.holonomic, q, t, params, iterations)
+
+    def differentiated(self) -> "Mechanism":
+        """This mechanism without `dependent`: all s coordinates integrated, g imposed as ġ = 0."""
+        return dataclasses.replace(self, dependent=None, guess=None)
+
+    def reduced(self, s: int) -> "Mechanism":
+        """The mechanism in the s − h independent coordinates q_I (s: the number of all coordinates).
+
+        T, V, Q, S and c are those of this mechanism at `q = coordinates(q_I)`,
+        `q̇ = (∂q/∂q_I) q̇_I + ∂q/∂t` (q̈ likewise); the generalized forces are
+        `(∂q/∂q_I)ᵀ Q`. Names and `independent` are carried over. Cached: the
+        same mechanism and s give the same object, so compiled programs are reused.
+        """
+        return _reduced(self, int(s))
 
     def generalized_forces(self, q, qd, t, params):
         """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
@@ -386,6 +481,48 @@ def _signature_key(mech, q, qd, t, params):
     except TypeError:
         return None
     return key
+
+
+@functools.lru_cache(maxsize=64)
+def _reduced(mech: Mechanism, s: int) -> Mechanism:
+    el = mech._elimination()
+    free = el.free(s)
+    if max(el.dependent) >= s:
+        raise ValueError(f"Mechanism.reduced: dependent index {max(el.dependent)} ≥ s = {s} coordinates")
+    full = el.state
+
+    def kinetic(qi, qdi, t, p):
+        return mech.kinetic(*full(qi, qdi, t, p), t, p)
+
+    # the optional functions below are passed on only when this mechanism has them
+    def acceleration_energy(qi, qdi, qddi, t, p):
+        assert mech.acceleration_energy is not None
+        q, qd = full(qi, qdi, t, p)
+        return mech.acceleration_energy(q, qd, el.accelerations(q, qd, qddi, t, p), t, p)
+
+    def potential(qi, t, p):
+        assert mech.potential is not None
+        return mech.potential(el.coordinates(qi, t, p), t, p)
+
+    def forces(qi, qdi, t, p):
+        assert mech.forces is not None
+        q, qd = full(qi, qdi, t, p)
+        return el.generalized_forces(jnp.asarray(mech.forces(q, qd, t, p), qi.dtype), q, t, p)
+
+    def constraints(qi, qdi, t, p):
+        assert mech.constraints is not None
+        return mech.constraints(*full(qi, qdi, t, p), t, p)
+
+    return Mechanism(
+        kinetic,
+        constraints=constraints if mech.constraints is not None else None,
+        forces=forces if mech.forces is not None else None,
+        potential=potential if mech.potential is not None else None,
+        acceleration_energy=acceleration_energy if mech.acceleration_energy is not None else None,
+        names=None if mech.names is None else tuple(mech.names[i] for i in free),
+        independent=None if mech.independent is None else tuple(free.index(i) for i in mech.independent),
+        nonlinear_constraints=mech.nonlinear_constraints,
+    )
 
 
 def check_independent(independent: Sequence[int], s: int, m: int) -> tuple:

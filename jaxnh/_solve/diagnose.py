@@ -30,6 +30,7 @@ from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_ok, 
 
 __all__ = [
     "holonomic_consistent",
+    "on_branch",
     "initial_checks",
     "diagnose_stall",
     "spectral_radius",
@@ -40,6 +41,24 @@ __all__ = [
 STALLED_SPLIT_BELOW = 1e-4
 """A failed solve whose last state has a dependent block this much worse conditioned than
 the best available one is reported as a singular split."""
+
+
+def on_branch(mech, q, t, params):
+    """Whether q's dependent coordinates are those Newton's method reaches from `mech.guess`.
+
+    A simulation that eliminates them solves them afresh at every evaluation, from the guess:
+    a q0 on another solution of g = 0 (the pendulum bob above its pivot when the guess is
+    below) would start a different motion. Passed: within eps^¼ (1.2e-4 in float64) of
+    1 + |q_D|, far above the √eps to which g(q0) = 0 is checked and far below the distance
+    between two branches.
+    """
+    q = jax.lax.stop_gradient(q)
+    dep = mech.dependent
+    solved = mech.coordinates(jnp.stack([q[i] for i in mech.free_coordinates(q.shape[0])]), t, params)
+    given = jnp.stack([q[i] for i in dep])
+    reached = jnp.stack([solved[i] for i in dep])
+    tol = jnp.finfo(q.dtype).eps ** 0.25 * (1 + jnp.abs(given))
+    return jnp.all(jnp.abs(reached - given) <= tol)
 
 
 def holonomic_consistent(mech, q, t, params):

@@ -56,6 +56,7 @@ from jaxnh._base.compat import status_code
 from jaxnh._base.linalg import (
     cholesky,
     mm,
+    pick,
     solve_lower,
     solve_psd_min_norm,
     solve_spd,
@@ -65,7 +66,7 @@ from jaxnh._base.linalg import (
 )
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
 from jaxnh._equations import Appell, Formulation, Lagrange
-from jaxnh._equations.split import best_partition, block_determinant, permutation, pick, place, select
+from jaxnh._equations.split import best_partition, block_determinant, permutation, place, select
 from jaxnh._equations.step_maps import StepMaps
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms, projected_terms
 from jaxnh._model.checks import (

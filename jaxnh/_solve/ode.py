@@ -9,8 +9,8 @@ import equinox as eqx
 import jax.flatten_util
 import jax.numpy as jnp
 
+from jaxnh._base.host import as_float, as_time
 from jaxnh._equations import Formulation, formulation
-from jaxnh._equations.base import as_float, as_time
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import _flat_mask, _masked_rms
 from jaxnh._solve.simulate import field

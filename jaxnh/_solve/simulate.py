@@ -11,6 +11,7 @@ than the compiled solve.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 from typing import Any, Callable, Optional
@@ -23,13 +24,14 @@ import numpy as np
 import optimistix as optx
 
 from jaxnh._base.compat import status_code
+from jaxnh._base.host import as_data, as_float
+from jaxnh._base.linalg import pick
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
 from jaxnh._equations import Appell, as_formulation, Lagrange
-from jaxnh._equations.base import as_data, as_float
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints
-from jaxnh._solve.diagnose import diagnose_stall, initial_checks, spectral_radius, STIFF_ABOVE
+from jaxnh._solve.diagnose import diagnose_stall, initial_checks, on_branch, spectral_radius, STIFF_ABOVE
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.rk import UnrolledTsit5
@@ -596,14 +598,31 @@ def _clip_save_times(saveat, ok, t0):
 
 
 class _UserEvent(eqx.Module):
-    """A user's event condition, called with (q, qd) and params."""
+    """A user's event condition, called with (q, qd) in all coordinates and params."""
 
     cond_fn: Callable
+    full: Optional[Mechanism] = None  # the mechanism whose dependent coordinates the solve eliminates
 
     def __call__(self, t, y, args, **kwargs):
         form, params, _ = args
         q, qd = form.unpack(y, t, params)
+        if self.full is not None:
+            q, qd = self.full.full_state(q, qd, t, params)
         return self.cond_fn(t, (q, qd), params, **kwargs)
+
+
+def _reindexed(form, free: tuple):
+    """`form` with its fixed independent velocities given among the free coordinates `free`."""
+    ind = getattr(form, "independent", None)
+    if ind is None:
+        return form
+    dependent = [i for i in ind if i not in free]
+    if dependent:
+        raise ValueError(
+            f"independent={tuple(ind)}: coordinates {tuple(dependent)} are `dependent` (solved from the holonomic "
+            f"constraints, their rates follow from ġ = 0); choose the independent velocities among {free}"
+        )
+    return dataclasses.replace(form, independent=tuple(free.index(i) for i in ind))
 
 
 def _run_traced(
@@ -630,10 +649,22 @@ def _run_traced(
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
     s = q0.shape[0]
+    full = full_form = None
+    inputs = (q0, qd0)
+    if mech.dependent is not None:
+        # holonomic constraints solved for the dependent coordinates: the solve integrates the
+        # mechanism in the s − h others, and the outputs are mapped back to all s (`full`)
+        full, free = mech, mech.free_coordinates(s)
+        full_form = Lagrange().bind(full, s, m)  # the full initial state is checked as given
+        form = _reindexed(form, free)
+        mech = full.reduced(s)
+        q0, qd0 = pick(q0, free), pick(qd0, free)
+        m = mech.check_shapes(q0, qd0, t0, params)
+        s = len(free)
     if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
         form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
     form = form.bind(mech, s, m)
-    finite = all_finite((q0, qd0, ts, params, form))
+    finite = all_finite((inputs, ts, params, form))
     increasing = jnp.all(jnp.diff(ts) > 0)
     q0r = jnp.where(finite, q0, 0.0)
     qd0r = jnp.where(finite, qd0, 0.0)
@@ -642,6 +673,13 @@ def _run_traced(
     # the checks and diagnoses below only decide a status: no derivative flows through them, and
     # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
     checked, check_status = initial_checks(*no_grad((form, q0r, qd0r, t0r, params)))
+    if full is not None:  # the full state first: g(q0) = 0, ġ = 0 and c = 0, on the branch `guess` picks
+        qf, qdf = (jnp.where(finite, x, 0.0) for x in inputs)
+        full_ok, full_status = initial_checks(*no_grad((full_form, qf, qdf, t0r, params)))
+        branch = on_branch(*no_grad((full, qf, t0r, params)))
+        full_status = STATUS.where(full_ok & ~branch, STATUS.holonomic_branch, full_status)  # pyright: ignore[reportArgumentType]
+        check_status = STATUS.where(full_ok & branch, check_status, full_status)  # pyright: ignore[reportArgumentType]
+        checked = full_ok & branch & checked
     ok = finite & increasing & checked
     y0 = form.state(q0r, qd0r, t0r, params)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
@@ -685,7 +723,7 @@ def _run_traced(
             tol = float(np.sqrt(np.finfo(np.dtype(q0.dtype)).eps)) * 1e-3
             root_finder = optx.Newton(rtol=tol, atol=tol)
         event = diffrax.Event(
-            jax.tree_util.tree_map(_UserEvent, event.cond_fn, is_leaf=callable),
+            jax.tree_util.tree_map(lambda f: _UserEvent(f, full), event.cond_fn, is_leaf=callable),
             root_finder=root_finder,
             **direction,
         )
@@ -752,6 +790,9 @@ def _run_traced(
         out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(
             q, qd, ts_s
         )
+    if full is not None:  # all s coordinates out; energy and residual of the full mechanism
+        q, qd = jax.vmap(lambda a, b, t: full.full_state(a, b, t, params))(q, qd, ts_s)
+        mech, s = full, q.shape[-1]
     if "energy" in record:
         out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts_s)
     if "residual" in record:
@@ -795,7 +836,7 @@ def _run_traced(
     status = STATUS.where(bad_output, STATUS.non_finite_output, status)
     failed = status != STATUS.successful
     nan_all = ~ok
-    link = nan_link(failed, input_sum((params, q0, qd0, form)))
+    link = nan_link(failed, input_sum((params, inputs, form)))
 
     def finish(x):
         return jnp.where(nan_all, jnp.nan, x) + link.astype(x.dtype)
@@ -815,7 +856,7 @@ def _run_traced(
         stats=stats,
         status=status,
         names=mech.coordinate_names(s),
-        dense=DenseMotion(interpolation, form, params) if dense and interpolation is not None else None,
+        dense=DenseMotion(interpolation, form, params, full) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )
 

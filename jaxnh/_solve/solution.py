@@ -26,11 +26,15 @@ class DenseMotion(eqx.Module):
     interpolation: Any
     form: Any
     params: Any
+    full: Any = None  # a mechanism whose dependent coordinates the solve eliminated
 
     def evaluate(self, t):
         """Coordinates and velocities `(q, qd)` at time t, s."""
         y = self.interpolation.evaluate(t)
-        return self.form.unpack(y, t, self.params)
+        q, qd = self.form.unpack(y, t, self.params)
+        if self.full is not None:
+            q, qd = self.full.full_state(q, qd, t, self.params)
+        return q, qd
 
 
 class Solution(eqx.Module):

@@ -44,8 +44,8 @@ from jaxnh._base.compile import ONE_SHOT as _ONE_SHOT, one_shot_jit
 from jaxnh._base.host import array_module
 from jaxnh._base.linalg import mm
 from jaxnh._base.status import is_traced
+from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.rigid import RigidBodies, rot_axis, rot_x, rot_y, rot_z, Wheel
-from jaxnh._solve.holonomic import HolonomicMechanism
 
 
 __all__ = [
@@ -230,30 +230,30 @@ def rolling(q, qd, t, p):
 
 
 @functools.lru_cache(maxsize=None)
-def system() -> HolonomicMechanism:
+def system() -> Mechanism:
     """The Whipple bicycle in all 8 coordinates: the pitch is the dependent coordinate
     of the front-contact constraint (Newton starts from pitch 0, the reference
     configuration), the roll, rear wheel and steer rates are the independent velocities."""
     b = bodies()
-    return HolonomicMechanism(
+    return Mechanism(
         b.kinetic,
-        front_contact,
-        dependent=(PITCH,),
         constraints=rolling,
         potential=b.potential,
+        holonomic=front_contact,
         acceleration_energy=b.acceleration_energy,
         names=COORDINATES,
         independent=INDEPENDENT,
+        dependent=(PITCH,),
     )
 
 
-def mechanism(method: str = "appell"):
+def mechanism(method: str = "appell") -> Mechanism:
     """The bicycle as a `jaxnh.Mechanism` for a method.
 
     "lagrange": all 8 coordinates, the front contact imposed as ġ = 0 among
-    the constraints (`HolonomicMechanism.differentiated`). "appell": the 7
+    the constraints (`Mechanism.differentiated`). "appell": the 7
     coordinates other than the pitch, which is solved by Newton's method
-    (`HolonomicMechanism.reduced`), with the acceleration energy S.
+    (`Mechanism.reduced`), with the acceleration energy S.
     """
     if method == "lagrange":
         return system().differentiated()
