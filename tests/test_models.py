@@ -264,6 +264,15 @@ def test_holonomic_elimination_checks_q0_and_maps_events_and_dense_output():
     dense = nh.simulate(mech, PEND_P, q0, jnp.zeros(2), ts, saveat=diffrax.SaveAt(t1=True, dense=True), **TOL)
     th = exact_angle(jnp.array([1.0]))[0]
     np.testing.assert_allclose(dense.evaluate(1.0)[0], [L * np.sin(th), -L * np.cos(th)], atol=1e-8)
+    # the user's own diffeqsolve of `ode`: the same elimination, unpacked to all coordinates
+    o = nh.ode(mech, PEND_P, q0, jnp.zeros(2), 0.0)
+    pid = diffrax.PIDController(rtol=1e-11, atol=1e-12, norm=o.error_norm)
+    run = diffrax.diffeqsolve(
+        o.term, o.solver(diffrax.Dopri8()), 0.0, 3.0, None, o.y0, args=o.args, saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=pid,
+    )  # fmt: skip
+    th = exact_angle(ts)
+    np.testing.assert_allclose(jax.vmap(o.unpack)(run.ys, run.ts)[0], np.c_[L * np.sin(th), -L * np.cos(th)], atol=1e-9)
     # fixed independent velocities are given in all coordinates; a dependent one is refused
     with pytest.raises(ValueError, match="dependent"):
         nh.simulate(mech, PEND_P, q0, jnp.zeros(2), ts, independent=(1,))

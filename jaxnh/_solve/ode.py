@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import diffrax
 import equinox as eqx
@@ -10,10 +10,11 @@ import jax.flatten_util
 import jax.numpy as jnp
 
 from jaxnh._base.host import as_float, as_time
-from jaxnh._equations import Formulation, formulation
+from jaxnh._base.linalg import pick
+from jaxnh._equations import as_formulation, Formulation, formulation
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import _flat_mask, _masked_rms
-from jaxnh._solve.simulate import field
+from jaxnh._solve.simulate import field, reindexed
 from jaxnh._solve.stepping import MappedSolver
 
 
@@ -31,6 +32,9 @@ class ODE(eqx.Module):
             is chosen automatically), for Lagrange's [q, qd].
         args: the vector field's arguments: (formulation, params, True).
         form: the bound formulation.
+        full: for a mechanism with `dependent` coordinates, that mechanism:
+            the formulation integrates `full.reduced(s)`, in the other
+            coordinates, and `unpack` maps back to all s (None otherwise).
 
     Use `ode.solver(diffrax.Tsit5())` in `diffeqsolve`: it applies the
     formulation's maps around every step (Appell's re-choice of independent
@@ -44,10 +48,14 @@ class ODE(eqx.Module):
     y0: Any
     args: Any
     form: Formulation
+    full: Optional[Mechanism] = None
 
     def unpack(self, y, t):
         """Coordinates q (s,) and velocities qd (s,) from a state y at time t (s)."""
-        return self.form.unpack(y, t, self.args[1])
+        q, qd = self.form.unpack(y, t, self.args[1])
+        if self.full is not None:
+            q, qd = self.full.full_state(q, qd, t, self.args[1])
+        return q, qd
 
     def solver(self, solver):
         """`solver` with the formulation's step maps applied (or unchanged if it has none)."""
@@ -73,6 +81,9 @@ def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independen
         method: a formulation object or name, as in `simulate`.
         independent: fixed independent velocities for "appell"/"substituted".
 
+    A mechanism with `dependent` coordinates is integrated in the others, as
+    by `simulate`; `unpack` gives all of them.
+
     Returns:
         An `ODE`. Example::
 
@@ -86,6 +97,11 @@ def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independen
     q0 = as_float(q0)
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     t0 = as_time(t0, q0)
+    full = None
+    if mech.dependent is not None:  # as in simulate: the dependent coordinates are eliminated
+        full, free = mech, mech.free_coordinates(q0.shape[0])
+        mech, q0, qd0 = mech.reduced(q0.shape[0]), pick(q0, free), pick(qd0, free)
+        method, independent = reindexed(as_formulation(method, independent), free), None
     form = formulation(mech, method, q0, qd0, t0, params, independent)
     y0 = form.state(q0, qd0, t0, params)
-    return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form)
+    return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form, full=full)

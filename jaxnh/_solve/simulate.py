@@ -611,7 +611,7 @@ class _UserEvent(eqx.Module):
         return self.cond_fn(t, (q, qd), params, **kwargs)
 
 
-def _reindexed(form, free: tuple):
+def reindexed(form, free: tuple):
     """`form` with its fixed independent velocities given among the free coordinates `free`."""
     ind = getattr(form, "independent", None)
     if ind is None:
@@ -656,7 +656,7 @@ def _run_traced(
         # mechanism in the s − h others, and the outputs are mapped back to all s (`full`)
         full, free = mech, mech.free_coordinates(s)
         full_form = Lagrange().bind(full, s, m)  # the full initial state is checked as given
-        form = _reindexed(form, free)
+        form = reindexed(form, free)
         mech = full.reduced(s)
         q0, qd0 = pick(q0, free), pick(qd0, free)
         m = mech.check_shapes(q0, qd0, t0, params)
