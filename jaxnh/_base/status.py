@@ -91,11 +91,12 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "(`mech.holonomic_residual(q0, t0, params)` tells how far off it is)."
     )
     holonomic_branch = (
-        "The dependent coordinates of q0 are not the solution of g(q0, t0) = 0 that Newton's method "
-        "reaches from the mechanism's `guess` (zeros by default): the simulation solves them afresh at "
-        "every step from that guess, so it would follow another branch of the constraints than q0 "
-        "lies on. Give `guess=` on the branch of q0 (e.g. the pendulum bob below its pivot), or "
-        "compute q0 with `mech.coordinates(q0_independent, t0, params)`."
+        "Newton's method on g(q0, t0) = 0 does not return q0's own dependent coordinates: either "
+        "the mechanism's `guess` leads to another solution (another branch of the constraints, "
+        "e.g. the pendulum bob above its pivot instead of below), or ∂g/∂q_D is singular at q0, so "
+        "the dependent coordinates cannot be solved for there. Give a `guess=` on q0's branch (or "
+        "none: Newton's method then starts at q0's dependent coordinates), or choose as "
+        "`dependent` coordinates whose block of ∂g/∂q is invertible along the motion."
     )
     acceleration_energy_mismatch = (
         "The acceleration energy S (`acceleration_energy`) disagrees with the kinetic energy T at "

@@ -181,8 +181,8 @@ class Elimination(eqx.Module):
         GD, GI, _ = self.jacobians(q, t, params)
         return self.assemble(qdd_ind, solve_square(GD, -(GI @ qdd_ind + gamma)))
 
-    def state(self, q_ind, qd_ind, t, params):
-        """q (s,) and q̇ (s,) from q_I and q̇_I (g = 0, ġ = 0).
+    def state(self, q_ind, qd_ind, t, params, start=None):
+        """q (s,) and q̇ (s,) from q_I and q̇_I (g = 0, ġ = 0); Newton from `start` as in `coordinates`.
 
         The velocities are written out from the Jacobian of g (not by
         differentiating the Newton solve), which keeps nested derivatives of
@@ -190,7 +190,7 @@ class Elimination(eqx.Module):
         """
         q_ind = as_float(q_ind)
         t = as_time(t, q_ind)
-        q = self.coordinates(q_ind, t, params)
+        q = self.coordinates(q_ind, t, params, start)
         return q, self.velocities(q, jnp.asarray(qd_ind, q_ind.dtype), t, params)
 
     def restore(self, q, t, params):

@@ -96,17 +96,17 @@ class Mechanism(eqx.Module):
         dependent: indices of h coordinates solved from the h holonomic
             constraints (the block `∂g/∂q_D` must be invertible along the
             motion). `simulate` (and so `fit` and `sweep`) then integrates only
-            the other s − h coordinates, recovers these by Newton's method at
-            every evaluation, so that g = 0 holds to Newton's accuracy and
-            cannot drift, and reports all s coordinates. q0's dependent
-            coordinates must be the solution Newton's method reaches from
-            `guess` (`restore` computes them). `reduced` gives the mechanism
-            in the independent coordinates, `differentiated` the one without
+            the other s − h coordinates and recovers these by Newton's method
+            at every evaluation, so that g = 0 holds to Newton's accuracy and
+            cannot drift; it reports all s coordinates. Newton's method starts
+            at q0's dependent coordinates, which keeps the motion on the branch
+            of g = 0 that q0 lies on. `reduced` gives the mechanism in the
+            independent coordinates, `differentiated` the one without
             elimination. Default None: the holonomic constraints are imposed
             as ġ = 0, as described under `holonomic`.
         guess: `guess(q_I, t, params) -> (h,)`, where Newton's method starts
-            for the dependent coordinates (default zeros, the reference
-            configuration); it picks the branch of g = 0 the motion stays on.
+            for the dependent coordinates instead (and, in `coordinates` and
+            `full_state` without a `start`, zeros when there is no guess).
         newton_iterations: Newton iterations for the dependent coordinates
             (quadratic convergence: 8 reach rounding from a reasonable start).
         newton_tol: largest accepted |g| after them (default √eps); a miss
@@ -211,9 +211,13 @@ class Mechanism(eqx.Module):
         """
         return self._elimination().coordinates(q_ind, t, params, start)
 
-    def full_state(self, q_ind, qd_ind, t, params):
-        """(q, qd), each (s,), from the independent coordinates q_I and their rates (g = 0, ġ = 0)."""
-        return self._elimination().state(q_ind, qd_ind, t, params)
+    def full_state(self, q_ind, qd_ind, t, params, start=None):
+        """(q, qd), each (s,), from the independent coordinates q_I and their rates (g = 0, ġ = 0).
+
+        `start`: where Newton's method starts for the dependent coordinates
+        (default `guess`, else zeros).
+        """
+        return self._elimination().state(q_ind, qd_ind, t, params, start)
 
     def restore(self, q, t, params):
         """q (s,) with its dependent coordinates re-solved from the others (Newton from q's own q_D)."""
@@ -241,7 +245,16 @@ class Mechanism(eqx.Module):
         `(∂q/∂q_I)ᵀ Q`. Names and `independent` are carried over. Cached: the
         same mechanism and s give the same object, so compiled programs are reused.
         """
-        return _reduced(self, int(s))
+        return _reduced(self, int(s), False)
+
+    def reduced_from_start(self, s: int) -> "Mechanism":
+        """`reduced(s)` taking `(params, start)` pairs for params: Newton's method for the
+        dependent coordinates starts at `start` (h,) unless a `guess` was given.
+
+        `simulate` integrates this with the start at q0's dependent coordinates, which keeps
+        the motion on the branch of g = 0 that q0 lies on.
+        """
+        return _reduced(self, int(s), True)
 
     def generalized_forces(self, q, qd, t, params):
         """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
@@ -484,34 +497,47 @@ def _signature_key(mech, q, qd, t, params):
 
 
 @functools.lru_cache(maxsize=64)
-def _reduced(mech: Mechanism, s: int) -> Mechanism:
+def _reduced(mech: Mechanism, s: int, carried: bool) -> Mechanism:
     el = mech._elimination()
     free = el.free(s)
     if max(el.dependent) >= s:
         raise ValueError(f"Mechanism.reduced: dependent index {max(el.dependent)} ≥ s = {s} coordinates")
-    full = el.state
+
+    def split(p):
+        """(the user's params, Newton's start or None)."""
+        if not carried:
+            return p, None
+        user, start = p
+        return user, (None if mech.guess is not None else start)
+
+    def full(qi, qdi, t, p):
+        user, start = split(p)
+        return (*el.state(qi, qdi, t, user, start), user)
 
     def kinetic(qi, qdi, t, p):
-        return mech.kinetic(*full(qi, qdi, t, p), t, p)
+        q, qd, user = full(qi, qdi, t, p)
+        return mech.kinetic(q, qd, t, user)
 
     # the optional functions below are passed on only when this mechanism has them
     def acceleration_energy(qi, qdi, qddi, t, p):
         assert mech.acceleration_energy is not None
-        q, qd = full(qi, qdi, t, p)
-        return mech.acceleration_energy(q, qd, el.accelerations(q, qd, qddi, t, p), t, p)
+        q, qd, user = full(qi, qdi, t, p)
+        return mech.acceleration_energy(q, qd, el.accelerations(q, qd, qddi, t, user), t, user)
 
     def potential(qi, t, p):
         assert mech.potential is not None
-        return mech.potential(el.coordinates(qi, t, p), t, p)
+        user, start = split(p)
+        return mech.potential(el.coordinates(qi, t, user, start), t, user)
 
     def forces(qi, qdi, t, p):
         assert mech.forces is not None
-        q, qd = full(qi, qdi, t, p)
-        return el.generalized_forces(jnp.asarray(mech.forces(q, qd, t, p), qi.dtype), q, t, p)
+        q, qd, user = full(qi, qdi, t, p)
+        return el.generalized_forces(jnp.asarray(mech.forces(q, qd, t, user), qi.dtype), q, t, user)
 
     def constraints(qi, qdi, t, p):
         assert mech.constraints is not None
-        return mech.constraints(*full(qi, qdi, t, p), t, p)
+        q, qd, user = full(qi, qdi, t, p)
+        return mech.constraints(q, qd, t, user)
 
     return Mechanism(
         kinetic,

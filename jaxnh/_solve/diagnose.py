@@ -44,7 +44,8 @@ the best available one is reported as a singular split."""
 
 
 def on_branch(mech, q, t, params):
-    """Whether q's dependent coordinates are those Newton's method reaches from `mech.guess`.
+    """Whether q's dependent coordinates are those Newton's method reaches from `mech.guess`
+    (without one, from q's own dependent coordinates: a q0 on g = 0 passes, unless G_D is singular).
 
     A simulation that eliminates them solves them afresh at every evaluation, from the guess:
     a q0 on another solution of g = 0 (the pendulum bob above its pivot when the guess is
@@ -54,7 +55,9 @@ def on_branch(mech, q, t, params):
     """
     q = jax.lax.stop_gradient(q)
     dep = mech.dependent
-    solved = mech.coordinates(jnp.stack([q[i] for i in mech.free_coordinates(q.shape[0])]), t, params)
+    # Newton from the guess if there is one, else from q's own dependent coordinates (as simulate)
+    start = None if mech.guess is not None else jnp.stack([q[i] for i in dep])
+    solved = mech.coordinates(jnp.stack([q[i] for i in mech.free_coordinates(q.shape[0])]), t, params, start)
     given = jnp.stack([q[i] for i in dep])
     reached = jnp.stack([solved[i] for i in dep])
     tol = jnp.finfo(q.dtype).eps ** 0.25 * (1 + jnp.abs(given))

@@ -15,6 +15,7 @@ from jaxnh._equations import as_formulation, Formulation, formulation
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import _flat_mask, _masked_rms
 from jaxnh._solve.simulate import field, reindexed
+from jaxnh._solve.solution import Expansion
 from jaxnh._solve.stepping import MappedSolver
 
 
@@ -32,9 +33,9 @@ class ODE(eqx.Module):
             is chosen automatically), for Lagrange's [q, qd].
         args: the vector field's arguments: (formulation, params, True).
         form: the bound formulation.
-        full: for a mechanism with `dependent` coordinates, that mechanism:
-            the formulation integrates `full.reduced(s)`, in the other
-            coordinates, and `unpack` maps back to all s (None otherwise).
+        expand: for a mechanism with `dependent` coordinates, the map back to
+            all s coordinates (the formulation integrates the others, as in
+            `simulate`, and `args[1]` is then `(params, start)`); None otherwise.
 
     Use `ode.solver(diffrax.Tsit5())` in `diffeqsolve`: it applies the
     formulation's maps around every step (Appell's re-choice of independent
@@ -48,13 +49,13 @@ class ODE(eqx.Module):
     y0: Any
     args: Any
     form: Formulation
-    full: Optional[Mechanism] = None
+    expand: Optional[Expansion] = None
 
     def unpack(self, y, t):
         """Coordinates q (s,) and velocities qd (s,) from a state y at time t (s)."""
         q, qd = self.form.unpack(y, t, self.args[1])
-        if self.full is not None:
-            q, qd = self.full.full_state(q, qd, t, self.args[1])
+        if self.expand is not None:
+            q, qd, _ = self.expand(q, qd, t, self.args[1])
         return q, qd
 
     def solver(self, solver):
@@ -97,11 +98,12 @@ def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independen
     q0 = as_float(q0)
     qd0 = jnp.asarray(qd0, dtype=q0.dtype)
     t0 = as_time(t0, q0)
-    full = None
+    expand = None
     if mech.dependent is not None:  # as in simulate: the dependent coordinates are eliminated
-        full, free = mech, mech.free_coordinates(q0.shape[0])
-        mech, q0, qd0 = mech.reduced(q0.shape[0]), pick(q0, free), pick(qd0, free)
+        free, expand = mech.free_coordinates(q0.shape[0]), Expansion(mech)
+        params = (params, jax.lax.stop_gradient(pick(q0, mech.dependent)))
+        mech, q0, qd0 = mech.reduced_from_start(q0.shape[0]), pick(q0, free), pick(qd0, free)
         method, independent = reindexed(as_formulation(method, independent), free), None
     form = formulation(mech, method, q0, qd0, t0, params, independent)
     y0 = form.state(q0, qd0, t0, params)
-    return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form, full=full)
+    return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form, expand=expand)

@@ -36,7 +36,7 @@ from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.rk import UnrolledTsit5
 from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
-from jaxnh._solve.solution import DenseMotion, Solution
+from jaxnh._solve.solution import DenseMotion, Expansion, Solution
 
 
 __all__ = [
@@ -601,13 +601,13 @@ class _UserEvent(eqx.Module):
     """A user's event condition, called with (q, qd) in all coordinates and params."""
 
     cond_fn: Callable
-    full: Optional[Mechanism] = None  # the mechanism whose dependent coordinates the solve eliminates
+    expand: Optional[Expansion] = None  # for a solve that eliminates dependent coordinates
 
     def __call__(self, t, y, args, **kwargs):
         form, params, _ = args
         q, qd = form.unpack(y, t, params)
-        if self.full is not None:
-            q, qd = self.full.full_state(q, qd, t, params)
+        if self.expand is not None:
+            q, qd, params = self.expand(q, qd, t, params)
         return self.cond_fn(t, (q, qd), params, **kwargs)
 
 
@@ -649,17 +649,21 @@ def _run_traced(
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
     s = q0.shape[0]
-    full = full_form = None
+    full = full_form = expand = None
     inputs = (q0, qd0)
+    run = params  # the params of the formulation's functions
     if mech.dependent is not None:
         # holonomic constraints solved for the dependent coordinates: the solve integrates the
-        # mechanism in the s − h others, and the outputs are mapped back to all s (`full`)
+        # mechanism in the s − h others, with Newton's method started at q0's dependent
+        # coordinates (the branch q0 is on), and the outputs are mapped back to all s
         full, free = mech, mech.free_coordinates(s)
         full_form = Lagrange().bind(full, s, m)  # the full initial state is checked as given
         form = reindexed(form, free)
-        mech = full.reduced(s)
+        mech, expand = full.reduced_from_start(s), Expansion(full)
+        start = jax.lax.stop_gradient(pick(q0, full.dependent))
+        run = (params, jnp.where(jnp.isfinite(start), start, 0.0))
         q0, qd0 = pick(q0, free), pick(qd0, free)
-        m = mech.check_shapes(q0, qd0, t0, params)
+        m = mech.check_shapes(q0, qd0, t0, run)
         s = len(free)
     if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
         form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
@@ -672,16 +676,16 @@ def _run_traced(
     t0r = tsr[0]
     # the checks and diagnoses below only decide a status: no derivative flows through them, and
     # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
-    checked, check_status = initial_checks(*no_grad((form, q0r, qd0r, t0r, params)))
+    checked, check_status = initial_checks(*no_grad((form, q0r, qd0r, t0r, run)))
     if full is not None:  # the full state first: g(q0) = 0, ġ = 0 and c = 0, on the branch `guess` picks
         qf, qdf = (jnp.where(finite, x, 0.0) for x in inputs)
         full_ok, full_status = initial_checks(*no_grad((full_form, qf, qdf, t0r, params)))
-        branch = on_branch(*no_grad((full, qf, t0r, params)))
+        branch = on_branch(*no_grad((full, qf, t0r, params)))  # (with a `guess`: the one it reaches)
         full_status = STATUS.where(full_ok & ~branch, STATUS.holonomic_branch, full_status)  # pyright: ignore[reportArgumentType]
         check_status = STATUS.where(full_ok & branch, check_status, full_status)  # pyright: ignore[reportArgumentType]
         checked = full_ok & branch & checked
     ok = finite & increasing & checked
-    y0 = form.state(q0r, qd0r, t0r, params)
+    y0 = form.state(q0r, qd0r, t0r, run)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
     if graph_throw:  # an invalid input raises before the solve: the solve depends on it, so it is never pruned
         # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
@@ -690,7 +694,7 @@ def _run_traced(
         pre = STATUS.where(finite, pre, STATUS.non_finite_input)
         y0 = jax.tree_util.tree_map(lambda x: raise_in_graph(x, pre), y0)
     if solver is None:
-        solver = default_solver(rtol, vector_field_operations(form, t0, y0, params), form.name)
+        solver = default_solver(rtol, vector_field_operations(form, t0, y0, run), form.name)
     dense = saveat is not None and bool(saveat.dense)
     # a progress meter, like dense output and events, needs a diffrax adjoint
     adjoint = choose_adjoint(adjoint, params, q0, qd0, dense=dense or event is not None or progress_meter is not None)
@@ -723,11 +727,11 @@ def _run_traced(
             tol = float(np.sqrt(np.finfo(np.dtype(q0.dtype)).eps)) * 1e-3
             root_finder = optx.Newton(rtol=tol, atol=tol)
         event = diffrax.Event(
-            jax.tree_util.tree_map(lambda f: _UserEvent(f, full), event.cond_fn, is_leaf=callable),
+            jax.tree_util.tree_map(lambda f: _UserEvent(f, expand), event.cond_fn, is_leaf=callable),
             root_finder=root_finder,
             **direction,
         )
-    args = (form, params, ok)
+    args = (form, run, ok)
     maps = form.step_maps()
     if dense and isinstance(adjoint, diffrax.BacksolveAdjoint):
         raise ValueError(
@@ -784,14 +788,14 @@ def _run_traced(
     saved = jnp.isfinite(out_ts)
     ys_s = jax.tree_util.tree_map(lambda x, x0: jnp.where(bcast(saved, x), x, x0), ys, y0)
     ts_s = jnp.where(saved, out_ts, t0r)
-    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, params))(ys_s, ts_s)
+    q, qd = jax.vmap(lambda y, t: form.unpack(y, t, run))(ys_s, ts_s)
     out = {}
     if "multipliers" in record:
-        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, params, multipliers=True)[1])(
+        out["multipliers"] = jax.vmap(lambda a, b, t: form.accelerations(a, b, t, run, multipliers=True)[1])(
             q, qd, ts_s
         )
-    if full is not None:  # all s coordinates out; energy and residual of the full mechanism
-        q, qd = jax.vmap(lambda a, b, t: full.full_state(a, b, t, params))(q, qd, ts_s)
+    if full is not None and expand is not None:  # all s coordinates out; energy and residual of the full mechanism
+        q, qd = jax.vmap(lambda a, b, t: expand(a, b, t, run)[:2])(q, qd, ts_s)
         mech, s = full, q.shape[-1]
     if "energy" in record:
         out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts_s)
@@ -818,12 +822,12 @@ def _run_traced(
         y_diag = jax.tree_util.tree_map(lambda x, e: jnp.where(rows.any(), x[first], e), ys, y_end)
         t_diag = jnp.where(rows.any(), out_ts[first], t_end)
         result = STATUS.where((result == STATUS.successful) & rows.any(), STATUS.non_finite_output, result)
-        form_, y_, t_, params_ = no_grad((form, y_diag, t_diag, params))
+        form_, y_, t_, params_ = no_grad((form, y_diag, t_diag, run))
         result = diagnose_stall(form_, y_, t_, params_, result, start=no_grad((q0r, qd0r, t0r)))
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check)
-        ratio = _stiffness(*no_grad((form, ys, out_ts, params, stats, t0r)))
+        ratio = _stiffness(*no_grad((form, ys, out_ts, run, stats, t0r)))
         stats["stiffness"] = ratio
         result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
     status = STATUS.where(checked, result, check_status)
@@ -856,7 +860,7 @@ def _run_traced(
         stats=stats,
         status=status,
         names=mech.coordinate_names(s),
-        dense=DenseMotion(interpolation, form, params, full) if dense and interpolation is not None else None,
+        dense=DenseMotion(interpolation, form, run, expand) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )
 

@@ -26,15 +26,32 @@ class DenseMotion(eqx.Module):
     interpolation: Any
     form: Any
     params: Any
-    full: Any = None  # a mechanism whose dependent coordinates the solve eliminated
+    expand: Optional["Expansion"] = None
 
     def evaluate(self, t):
         """Coordinates and velocities `(q, qd)` at time t, s."""
         y = self.interpolation.evaluate(t)
         q, qd = self.form.unpack(y, t, self.params)
-        if self.full is not None:
-            q, qd = self.full.full_state(q, qd, t, self.params)
+        if self.expand is not None:
+            q, qd, _ = self.expand(q, qd, t, self.params)
         return q, qd
+
+
+class Expansion(eqx.Module):
+    """All s coordinates from a solve in the independent ones of a mechanism with `dependent`.
+
+    Such a solve integrates `full.reduced_from_start(s)` with `(params, start)` for params,
+    `start` being q0's dependent coordinates (Newton's method starts there unless the
+    mechanism has a `guess`). Called with (q_I, qd_I, t, (params, start)), it returns
+    (q, qd, params): all coordinates and the user's own params.
+    """
+
+    full: Any
+
+    def __call__(self, q, qd, t, run):
+        params, start = run
+        start = None if self.full.guess is not None else start
+        return (*self.full.full_state(q, qd, t, params, start), params)
 
 
 class Solution(eqx.Module):
