@@ -352,14 +352,6 @@ def expect(case: Case) -> Expect:
             "-82.19998 with Tsit5; 2-4.5x its tolerance-derived bound) while the status is success; with "
             "SaveAt(ts=...), plain Lagrange or RecursiveCheckpointAdjoint it is right",
         )
-    if c["event"] == "bool" and c["saveat"] == "steps":
-        return Expect(
-            "xfail",
-            AssertionError,
-            reason="a boolean event with SaveAt(steps=True) saves the last step twice (sol.ts repeats its "
-            "last time): simulate gives every event a Newton root finder, and diffrax saves the final step "
-            "again after a root find",
-        )
     return Expect("ok")
 
 
@@ -656,7 +648,6 @@ KNOWN_FAILURES: list[Case] = [
     {**DEFAULTS, **c}
     for c in (
         {"formulation": "baumgarte", "saveat": "t1", "adjoint": "backsolve", "transform": "grad"},
-        {"event": "bool", "saveat": "steps"},
         {"adjoint": "forward_mode", "transform": "grad"},
         {"solver": "kvaerno5", "saveat": "t1", "event": "real", "adjoint": "direct", "transform": "jacfwd"},
     )
@@ -675,7 +666,12 @@ def _unique(cases: list[Case], seen=()) -> list[Case]:
 # Failures that were fixed, kept as cases that must work: with Dopri8 (the default solver of
 # Lagrange's form at rtol 1e-8) and DirectAdjoint, Baumgarte's gradient was 0.3 % off while the
 # vector field tested the initial checks' flag (not reproduced since it does not).
-FIXED: list[Case] = [{**DEFAULTS, "formulation": "baumgarte", "adjoint": "direct", "transform": "grad"}]
+# A boolean event with SaveAt(steps=True) saved the last step twice (sol.ts repeated its last
+# time) while simulate gave every event, boolean ones too, a Newton root finder.
+FIXED: list[Case] = [
+    {**DEFAULTS, "formulation": "baumgarte", "adjoint": "direct", "transform": "grad"},
+    {**DEFAULTS, "event": "bool", "saveat": "steps"},
+]
 
 QUICK = _unique(pairwise(FACTORS) + KNOWN_FAILURES + FIXED)
 SLOW = _unique(

@@ -419,9 +419,9 @@ def simulate(
     return sol
 
 
-def _boolean_condition(event, t, y, args) -> bool:
-    """Whether any condition of a diffrax Event returns a bool (an event without a root)."""
-    conds = jax.tree_util.tree_leaves(event.cond_fn, is_leaf=callable)
+def _boolean_condition(conditions, t, y, args) -> bool:
+    """Whether any of an Event's conditions (a pytree of them) returns a bool (an event without a root)."""
+    conds = jax.tree_util.tree_leaves(conditions, is_leaf=callable)
     # (args closed over, not abstracted: the formulation in them has Python flags its methods branch on)
     return any(jnp.dtype(jax.eval_shape(lambda t_, y_, c=c: c(t_, y_, args), t, y).dtype) == jnp.bool_ for c in conds)
 
@@ -713,25 +713,24 @@ def _run_traced(
         saveat = diffrax.SaveAt(ts=ts_save)
     else:
         saveat = _clip_save_times(saveat, ok, t0r)
+    args = (form, run, ok)
+    boolean = False
     if event is not None:
         # diffrax 0.7.0 (the oldest supported) has no `direction` on its Event; 0.7.2 has
         direction = {"direction": event.direction} if hasattr(event, "direction") else {}
+        conditions = jax.tree_util.tree_map(lambda f: _UserEvent(f, expand), event.cond_fn, is_leaf=callable)
+        boolean = _boolean_condition(conditions, t0r, y0, args)
         # an event without a root finder would end at the end of the step that crossed it, with a
         # time whose derivative is 0: it gets Newton's method on the solver's interpolant, so its
         # time is located to the tolerance and differentiable (a boolean condition has no root to
-        # find and keeps diffrax's behaviour)
+        # find and keeps diffrax's behaviour: its derivatives are refused below)
         root_finder = event.root_finder
-        if root_finder is None:
+        if root_finder is None and not boolean:
             # Newton converges quadratically on the smooth interpolant: a tolerance of 1e-3 √eps
             # (1.5e-11 in float64) costs an iteration or two more than a loose one
             tol = float(np.sqrt(np.finfo(np.dtype(q0.dtype)).eps)) * 1e-3
             root_finder = optx.Newton(rtol=tol, atol=tol)
-        event = diffrax.Event(
-            jax.tree_util.tree_map(lambda f: _UserEvent(f, expand), event.cond_fn, is_leaf=callable),
-            root_finder=root_finder,
-            **direction,
-        )
-    args = (form, run, ok)
+        event = diffrax.Event(conditions, root_finder=root_finder, **direction)
     maps = form.step_maps()
     if dense and isinstance(adjoint, diffrax.BacksolveAdjoint):
         raise ValueError(
@@ -770,7 +769,7 @@ def _run_traced(
         )
         out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
         event_mask, interpolation = sol.event_mask, sol.interpolation
-        if event is not None and _boolean_condition(event, t0r, y0, args):
+        if boolean:
             # no root to locate: the solve stops at the end of the step in which the condition
             # became True, a time whose derivative would come out 0 — refused, not returned
             out_ts, ys = _refuse_derivatives((out_ts, ys))
