@@ -347,63 +347,66 @@ def first_answer(R) -> tuple[list, list]:
 
 def precision(R) -> tuple[list, list]:
     rows = R["rows"]
-    curves = {}
-    for r in rows.values():
-        curves.setdefault((r["method"], r["solver"]), []).append((r["error"], r["cpu"]))
-    # time at matched error: each appell point against the lagrange curve (log-log interpolation)
-    lag = sorted(curves.get(("lagrange", "default"), []))
-    ratios = []
-    for err, cpu in curves.get(("appell", "default"), []):
-        other = _interp(lag, err)
-        if other:
-            ratios.append(cpu / other)
-    targets = [
-        [
-            "rolling ball: default formulation (Appell) / Lagrange, time at the same error, rtol "
-            f"{R['rtols'][0]:g}…{R['rtols'][-1]:g}",
-            "—",
-            f"{min(ratios):.2f}×…{max(ratios):.2f}× ({len(ratios)} matched points)" if ratios else "no overlap",
-            "closed form and a tight reference",
-            "—",
-        ]
-    ]
-    out = [
-        "## Work–precision: the rolling ball",
-        "",
-        "A ball rolling without slipping on a turntable, orientation by a quaternion (`benchmarks/mechanisms/ball.py`: "
-        f"s = 6, 2 rolling constraints and the unit quaternion's), {R['horizon']:g} s. A plain `simulate` per "
-        "tolerance (atol = rtol/100), CPU time per call; error: the larger of the centre's position and velocity "
-        "against the closed form and the whole state against a reference (Appell, Dopri8, rtol 1e-14: its centre is "
-        f"{e(R.get('reference_centre_error'))} from the closed form and its state {e(R.get('reference_floor'))} from "
-        "Lagrange's at that tolerance, the floor below which errors mean nothing) (`python -m benchmarks.precision`). "
-        "Figure: `figures/wp_ball.png`.",
+    default = "lagrange" if "mechanisms" in R else "appell"  # (results before the default changed: the ball alone)
+    other = "appell" if default == "lagrange" else "lagrange"
+    mechanisms = R.get("mechanisms", ["ball"])
+    targets, out = [], ["## Work–precision: the default formulation against the other", ""]
+    out += [
+        f"Each mechanism solved by a plain `simulate` per tolerance (atol = rtol/100), with the default formulation "
+        f"({default}) and {other}'s, the default solver; CPU time per call and the largest error over the report "
+        "times against an independent reference (`python -m benchmarks.precision`; figure: `figures/wp_ball.png`). "
+        "References: "
+        + "; ".join(f"{m}: {R.get('references', {}).get(m, 'closed form and a tight reference')}" for m in mechanisms)
+        + ".",
         "",
     ]
-    keys = sorted({(r["method"], r["solver"]) for r in rows.values()}, key=lambda k: (k[0], k[1] != "default", k[1]))
-    body = []
-    for rtol in R["rtols"]:
-        cells = [f"{rtol:g}"]
-        for key in keys:
-            r = rows[f"{key[0]} {key[1]} {rtol:g}"]
-            cells.append(f"{t(r['cpu'])}, {e(r['error'])}")
-        body.append(cells)
-    out += table(["rtol"] + [f"{m}, {s} solver" for m, s in keys], body)
-    if len(keys) > 2:
-        out += [
-            "### Default solver",
-            "",
-            "The default solver (`jaxnh.default_solver`) against diffrax's Tsit5 and Dopri8 in the same formulation: "
-            "the default's time over theirs at the errors the default reaches (interpolated on their curves).",
-            "",
-        ]
+    for mech in mechanisms:
+        mine = {k: r for k, r in rows.items() if r.get("mechanism", "ball") == mech}
+        curves = {}
+        for r in mine.values():
+            curves.setdefault((r["method"], r["solver"]), []).append((r["error"], r["cpu"]))
+        # time at matched error: each default point against the other formulation's curve (log-log interpolation)
+        theirs = sorted(curves.get((other, "default"), []))
+        ratios = [cpu / o for err, cpu in curves.get((default, "default"), []) if (o := _interp(theirs, err))]
+        targets.append(
+            [
+                f"{mech}: default formulation ({default}) / {other}, time at the same error, rtol "
+                f"{R['rtols'][0]:g}…{R['rtols'][-1]:g}",
+                "≤ 1× (no worse at any error)",
+                f"{min(ratios):.2f}×…{max(ratios):.2f}× ({len(ratios)} matched points)" if ratios else "no overlap",
+                "independent reference",
+                "yes" if ratios and max(ratios) <= 1.0 else ("no" if ratios else "—"),
+            ]
+        )
+        keys = sorted(
+            {(r["method"], r["solver"]) for r in mine.values()},
+            key=lambda k: (k[0] != default, k[1] != "default", k[1]),
+        )
+        prefix = f"{mech} " if "mechanisms" in R else ""
         body = []
-        for m, s in keys:
-            if s == "default":
-                continue
-            rs = [cpu / o for err, cpu in curves[(m, "default")] if (o := _interp(sorted(curves[(m, s)]), err))]
-            cell = f"{np.median(rs):.2f}× ({min(rs):.2f}×…{max(rs):.2f}×, {len(rs)} points)" if rs else "no overlap"
-            body.append([m, s, cell])
-        out += table(["formulation", "other solver", "default / other at the same error: median (range)"], body)
+        for rtol in R["rtols"]:
+            cells = [f"{rtol:g}"]
+            for key in keys:
+                r = rows[f"{prefix}{key[0]} {key[1]} {rtol:g}"]
+                cells.append(f"{t(r['cpu'])}, {e(r['error'])}")
+            body.append(cells)
+        out += [f"### {mech}", ""]
+        out += table(["rtol"] + [f"{m}, {s} solver" for m, s in keys], body)
+        if len(keys) > 2:
+            out += [
+                "The default solver (`jaxnh.default_solver`) against diffrax's Tsit5 and Dopri8 in the same "
+                "formulation: the default's time over theirs at the errors the default reaches (interpolated on their "
+                "curves).",
+                "",
+            ]
+            body = []
+            for m, s in keys:
+                if s == "default":
+                    continue
+                rs = [cpu / o for err, cpu in curves[(m, "default")] if (o := _interp(sorted(curves[(m, s)]), err))]
+                cell = f"{np.median(rs):.2f}× ({min(rs):.2f}×…{max(rs):.2f}×, {len(rs)} points)" if rs else "no overlap"
+                body.append([m, s, cell])
+            out += table(["formulation", "other solver", "default / other at the same error: median (range)"], body)
     return targets, out
 
 
@@ -511,13 +514,16 @@ def figures(results):
         plt.close(fig)
     if "precision" in results:
         rows = results["precision"]["rows"]
-        fig, ax = plt.subplots(figsize=(6, 4.5))
-        for key in sorted({(r["method"], r["solver"]) for r in rows.values()}):
-            pts = sorted((r["cpu"], r["error"]) for r in rows.values() if (r["method"], r["solver"]) == key)
-            ax.loglog(*zip(*pts), "o-" if key[1] == "default" else "x--", label=f"{key[0]}, {key[1]}")
-        ax.set(xlabel="CPU time per solve, s", ylabel="max error of the centre (m, m/s)", title="rolling ball")
-        ax.legend()
-        ax.grid(alpha=0.3)
+        mechanisms = results["precision"].get("mechanisms", ["ball"])
+        fig, axes = plt.subplots(1, len(mechanisms), figsize=(5 * len(mechanisms), 4.2), squeeze=False)
+        for ax, mech in zip(axes[0], mechanisms):
+            mine = [r for r in rows.values() if r.get("mechanism", "ball") == mech]
+            for key in sorted({(r["method"], r["solver"]) for r in mine}):
+                pts = sorted((r["cpu"], r["error"]) for r in mine if (r["method"], r["solver"]) == key)
+                ax.loglog(*zip(*pts), "o-" if key[1] == "default" else "x--", label=f"{key[0]}, {key[1]}")
+            ax.set(xlabel="CPU time per solve, s", ylabel="largest error (coordinates, velocities)", title=mech)
+            ax.legend(fontsize=11)
+            ax.grid(alpha=0.3)
         fig.tight_layout()
         fig.savefig(C.FIGURES / "wp_ball.png", dpi=110)
         plt.close(fig)

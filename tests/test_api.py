@@ -297,7 +297,9 @@ def test_gradient_with_saveat_steps_is_finite_and_right(adjoint):
 
 def test_backsolve_adjoint_with_step_maps_is_refused_and_plain_lagrange_differentiates():
     with pytest.raises(ValueError, match="BacksolveAdjoint"):
-        nh.simulate(MECH, params(), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, adjoint=diffrax.BacksolveAdjoint())
+        nh.simulate(
+            MECH, params(), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, "appell", adjoint=diffrax.BacksolveAdjoint()
+        )
 
     def final(J2):
         sol = nh.simulate(MECH, params(J2=J2), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, method="lagrange",

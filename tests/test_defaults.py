@@ -35,10 +35,10 @@ def qd0(p, w=1.0):
 
 def test_default_solver_by_tolerance_size_and_method():
     loose, tight = 10 * DOP853_BELOW_RTOL, DOP853_BELOW_RTOL / 10
-    assert isinstance(default_solver(loose), Tsit5)
-    assert isinstance(default_solver(loose, UNROLL_MAX_OPERATIONS), Tsit5)
-    assert isinstance(default_solver(tight), diffrax.Dopri8)
-    assert isinstance(default_solver(tight, 10**5), diffrax.Dopri8)
+    assert isinstance(default_solver(loose, method="appell"), Tsit5)
+    assert isinstance(default_solver(loose, UNROLL_MAX_OPERATIONS, "appell"), Tsit5)
+    assert isinstance(default_solver(tight, method="appell"), diffrax.Dopri8)
+    assert isinstance(default_solver(tight, 10**5, "appell"), diffrax.Dopri8)
     # large vector fields and lagrange: diffrax's looped Tsit5 only at loose tolerances, Dopri8 below
     looser, mid = 10 * DOPRI8_BELOW_RTOL_LOOPED, DOPRI8_BELOW_RTOL_LOOPED / 10
     assert DOPRI8_BELOW_RTOL_LOOPED > DOP853_BELOW_RTOL
@@ -46,7 +46,7 @@ def test_default_solver_by_tolerance_size_and_method():
     assert isinstance(default_solver(looser, 10, "lagrange"), diffrax.Tsit5)
     assert isinstance(default_solver(mid, UNROLL_MAX_OPERATIONS + 1), diffrax.Dopri8)
     assert isinstance(default_solver(mid, 10, "lagrange"), diffrax.Dopri8)
-    assert isinstance(default_solver(mid), Tsit5)
+    assert isinstance(default_solver(mid, method="appell"), Tsit5)
 
 
 def test_vector_field_size_is_counted_under_jit():
@@ -115,7 +115,7 @@ def _loss(theta, w, static, adjoint):
     p = eqx.combine(theta, static)
     # an explicit solver: the same diffrax loop for every adjoint (the default would run the
     # forward solves on the lean loop, whose steps land on the report times)
-    sol = nh.simulate(MECH, p, Q0, qd0(p, w), TS, adjoint=adjoint, independent=(0,), solver=Tsit5())
+    sol = nh.simulate(MECH, p, Q0, qd0(p, w), TS, "appell", adjoint=adjoint, independent=(0,), solver=Tsit5())
     return jnp.sum(sol.q**2) + jnp.sum(sol.qd**2)
 
 
@@ -189,7 +189,9 @@ def test_default_gradient_matches_reverse_mode_to_tolerance():
 def test_forward_sensitivities_refuse_report_time_derivatives():
     def loss(T):
         return jnp.sum(
-            nh.simulate(MECH, P, Q0, qd0(P), jnp.linspace(0.0, T, 5), independent=(0,), adjoint=ForwardSensitivity()).q
+            nh.simulate(
+                MECH, P, Q0, qd0(P), jnp.linspace(0.0, T, 5), "appell", independent=(0,), adjoint=ForwardSensitivity()
+            ).q
         )
 
     with pytest.raises(NotImplementedError, match="report times"):

@@ -324,7 +324,7 @@ def test_float32_gradient_and_traced_non_finite_input():
 
     def final_speed32(J2):
         p = to32(V.VariatorParams(J1=p32.J1, J2=J2, U21=p32.U21, M1=p32.M1, M2=p32.M2))
-        sol = nh.simulate(MECH, p, *initial(p32), TS.astype(F32), rtol=RTOL, atol=ATOL, independent=(0,))
+        sol = nh.simulate(MECH, p, *initial(p32), TS.astype(F32), "appell", rtol=RTOL, atol=ATOL, independent=(0,))
         return sol.qd[-1, 0], sol.stats["num_accepted_steps"]
 
     grad32 = jax.jit(jax.grad(final_speed32, has_aux=True))

@@ -276,7 +276,7 @@ def test_holonomic_elimination_checks_q0_and_maps_events_and_dense_output():
     np.testing.assert_allclose(jax.vmap(o.unpack)(run.ys, run.ts)[0], np.c_[L * np.sin(th), -L * np.cos(th)], atol=1e-9)
     # fixed independent velocities are given in all coordinates; a dependent one is refused
     with pytest.raises(ValueError, match="dependent"):
-        nh.simulate(mech, PEND_P, q0, jnp.zeros(2), ts, independent=(1,))
+        nh.simulate(mech, PEND_P, q0, jnp.zeros(2), ts, "appell", independent=(1,))
 
 
 def test_holonomic_completion_and_its_derivatives():

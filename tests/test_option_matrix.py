@@ -728,7 +728,7 @@ def test_option_product(case, capfd):
 def test_stabilization_needs_lagrange():
     """Refused before anything is traced, naming the option."""
     with pytest.raises(ValueError, match="stabilization='projection' applies to method='lagrange'"):
-        nh.simulate(MECH, P0, Q0, QD0, TS, stabilization="projection")
+        nh.simulate(MECH, P0, Q0, QD0, TS, method="appell", stabilization="projection")
     with pytest.raises(ValueError, match="baumgarte_rate is given but stabilization is not 'baumgarte'"):
         nh.simulate(MECH, P0, Q0, QD0, TS, method="lagrange", baumgarte_rate=5.0)
 

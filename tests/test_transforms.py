@@ -174,7 +174,8 @@ def _adv(p_change, qd0, q0):
 
 
 def _solve(p, q0, qd0):
-    return nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3), throw=False)
+    # Appell's form: it has one check more than Lagrange's (a regular dependent-velocity block)
+    return nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3), "appell", throw=False)
 
 
 @pytest.fixture(scope="module")
@@ -210,7 +211,7 @@ def test_failed_checks_raise_with_throw_true(check_outcomes):
         if name == "successful":
             continue
         with pytest.raises(nh.SimulationError, match=re.escape(nh.STATUS[getattr(nh.STATUS, name)][:30])):
-            nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3))
+            nh.simulate(ADV, p, q0, qd0, jnp.linspace(0.0, 1.0, 3), "appell")
 
 
 def test_batched_message_counts_outcomes(check_outcomes):

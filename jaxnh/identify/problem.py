@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnh._base.compile import one_shot_jit
+from jaxnh._equations import as_formulation, Lagrange
 from jaxnh._equations.split import VelocitySplit
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import ForwardSensitivity
@@ -186,6 +187,12 @@ class Problem(eqx.Module):
 
     # --- simulation and residuals ----------------------------------------------
 
+    @property
+    def solve_independent(self) -> Optional[tuple]:
+        """`independent` for `simulate`: the split of the initial velocities, for the formulations
+        that integrate independent velocities (Lagrange's integrates all of them: None)."""
+        return None if isinstance(as_formulation(self.method), Lagrange) else self.independent
+
     def _simulate(self, params, q0, qd0, ts, adjoint):
         sol = simulate(
             self.mech,
@@ -196,7 +203,7 @@ class Problem(eqx.Module):
             method=self.method,
             solver=self.solver,
             stepsize_controller=self.controller(),
-            independent=self.independent,
+            independent=self.solve_independent,
             max_steps=self.max_steps,
             adjoint=adjoint,
             throw=False,
