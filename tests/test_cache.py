@@ -14,6 +14,7 @@ import warnings
 
 import jax
 import pytest
+from jax.experimental.compilation_cache.compilation_cache import reset_cache
 
 from jaxnh._base import cache as _cache
 from jaxnh._base.cache import (
@@ -46,6 +47,11 @@ def clean_jax_cache_config():
     jax.config.update("jax_compilation_cache_dir", before[0])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
     _cache._active = before[2]
+    # JAX builds its cache object once, from the directory set at the first compilation after it
+    # was enabled, and keeps it when the flag changes back: without a reset, every later test of
+    # this worker would read and write the test's temporary cache (a worker crashed in XLA
+    # reading an entry from it, in test_variator)
+    reset_cache()
 
 
 def mode(path):
