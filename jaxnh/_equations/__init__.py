@@ -43,8 +43,15 @@ def as_formulation(method, independent=None) -> Formulation:
 
     `"appell"`, `"lagrange"`, `"substituted"` are aliases of `Appell()`,
     `Lagrange()`, `Substituted()`; `independent` is passed to the Appell and
-    substituted forms (Lagrange's equations integrate all velocities and ignore it).
+    substituted forms. Lagrange's equations integrate all velocities: given
+    `independent`, they are refused, naming `method='appell'`.
     """
+    if independent is not None and (isinstance(method, Lagrange) or (isinstance(method, str) and method == "lagrange")):
+        raise ValueError(
+            f"independent={tuple(independent)}: fixed independent velocities belong to method='appell' (or "
+            "'substituted'); Lagrange's equations, the default, integrate all velocities: pass method='appell' "
+            "with them, or leave independent out"
+        )
     if isinstance(method, Formulation):
         if independent is not None and isinstance(method, Appell):
             method = eqx.tree_at(lambda f: f.independent, method, tuple(independent), is_leaf=lambda x: x is None)

@@ -291,12 +291,8 @@ def simulate(
         form = as_formulation(method, ind)
     if baumgarte_rate is not None:
         form = Lagrange(baumgarte=baumgarte_rate)
-    if ind is not None and isinstance(form, Lagrange):
-        raise ValueError(
-            f"independent={ind}: fixed independent velocities belong to method='appell' (or 'substituted'); "
-            "Lagrange's equations, the default, integrate all velocities: pass method='appell' with them, "
-            "or leave independent out"
-        )
+    if ind is not None and isinstance(form, Lagrange):  # (stabilization= and baumgarte_rate= make it Lagrange's)
+        as_formulation(form, ind)  # refused there, naming method='appell'
     record = _record(record, form)
     if not _is_float_jax_array(q0) or not _is_jax_array(qd0, q0.dtype) or not _is_jax_array(ts, q0.dtype):
         for name, x in (("q0", q0), ("qd0", qd0), ("ts", ts)):
