@@ -116,7 +116,6 @@ def jaxnh_costs(quick=False):
             qd,
             ts,
             method="lagrange",
-            independent=bicycle.INDEPENDENT,
             rtol=rtol,
             atol=atol,
             solver=solver,

@@ -110,7 +110,6 @@ def run(v, kick, ts=TS):
         qd.at[B.ROLL].set(kick),
         ts,
         method="lagrange",
-        independent=B.INDEPENDENT,
         rtol=1e-10,
         atol=1e-12,
         solver=SOLVER,
