@@ -8,8 +8,8 @@
    call against the lambdified NumPy right-hand side in `solve_ivp` and
    against the SymPy equations printed as JAX source in `diffrax.Tsit5`
    ("by hand in JAX"), 2 ≤ N ≤ 8.
-3. Growth: first answers for N = 1 … 32 of `method="appell"`,
-   `"lagrange"` (the default) and of a first gradient (`jax.grad` of the final coordinates'
+3. Growth: first answers for N = 1 … 32 of `method="appell"` (the default),
+   `"lagrange"` and of a first gradient (`jax.grad` of the final coordinates'
    sum with respect to every parameter), with the fitted exponent of
    t ∝ N^k (of the time after the import).
 

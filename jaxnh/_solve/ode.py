@@ -70,7 +70,7 @@ class ODE(eqx.Module):
         return _masked_rms(flat, _flat_mask(self.form.error_mask(), self.y0))
 
 
-def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="lagrange", *, independent=None) -> ODE:
+def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independent=None) -> ODE:
     """The equations of motion of `mech` as a diffrax term, initial state and unpacking.
 
     Arguments:

@@ -80,7 +80,7 @@ stages (benchmarks/RESULTS.md).
 """
 
 
-def default_solver(rtol: float, operations: Optional[int] = None, method: str = "lagrange"):
+def default_solver(rtol: float, operations: Optional[int] = None, method: str = "appell"):
     """The explicit solver used when `simulate(solver=None)`.
 
     Arguments:
@@ -190,7 +190,7 @@ def simulate(
     q0,
     qd0,
     ts,
-    method="lagrange",
+    method="appell",
     solver=None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
@@ -225,15 +225,17 @@ def simulate(
             relative to the velocity scale (else `STATUS.inconsistent_velocities`).
         ts: report times (n,), strictly increasing, s; ts[0] is the start and
             ts[-1] the end.
-        method: a formulation object — `jaxnh.Lagrange(baumgarte=...,
-            projection=...)` (the default `Lagrange()`; multipliers, state
-            (q, qd)), `jaxnh.Appell()` (state (q, independent velocities),
-            the constraints hold exactly), `jaxnh.Substituted()` (the paper's
-            wrong method, for comparison) — or its name "lagrange", "appell",
-            "substituted". Lagrange's is the default: at the same error it
-            took 0.73–0.89× Appell's time on a rolling ball, 0.79–0.83× on a
-            car with four trailers and 1.04–1.15× on the variator (`python -m
-            benchmarks.precision`).
+        method: a formulation object — `jaxnh.Appell()` (the default; state
+            (q, independent velocities), the constraints hold exactly),
+            `jaxnh.Lagrange(baumgarte=..., projection=...)` (multipliers,
+            state (q, qd)), `jaxnh.Substituted()` (the paper's wrong method,
+            for comparison) — or its name "appell", "lagrange", "substituted".
+            At the same error Lagrange's form took 0.73–0.89× Appell's time
+            on a rolling ball, 0.79–0.83× on a car with four trailers and
+            1.04–1.15× on the variator (`python -m benchmarks.precision`), but
+            its first call grows much faster with the size of the mechanism
+            (a car with 8 trailers: 67 s against 18 s; with 16, more than
+            6 GB of memory), so Appell's stays the default.
         solver: a diffrax solver; default `default_solver(rtol, size of the
             vector field, method)`.
         rtol, atol: relative and absolute tolerances of the default PID step
@@ -242,8 +244,8 @@ def simulate(
             saved times only when asked.
         independent: fixed indices of independent velocities ("appell",
             "substituted"), the same as `method=jaxnh.Appell(independent=...)`;
-            default None: chosen and re-chosen inside the program (Lagrange's
-            equations integrate all velocities and do not use it).
+            default None: chosen and re-chosen inside the program (refused with
+            Lagrange's equations, which integrate all velocities).
         saveat: a `diffrax.SaveAt` (default `SaveAt(ts=ts)`); with
             `dense=True` the solution's `evaluate(t)` gives the motion at any t.
         stepsize_controller: a diffrax step-size controller (default a

@@ -242,7 +242,7 @@ def experiment(
     noise=None,
     q0=None,
     qd0=None,
-    method: str = "lagrange",
+    method: str = "appell",
     solver=None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
