@@ -196,6 +196,11 @@ class Mechanism(eqx.Module):
             )
         return Elimination(self.holonomic, self.dependent, self.guess, self.newton_iterations, self.newton_tol)
 
+    def newton_start(self, start):
+        """Where a solve that eliminates `dependent` starts Newton's method: `start` (q0's own
+        dependent coordinates), or None (the `guess`) when the mechanism has a guess."""
+        return None if self.guess is not None else start
+
     def free_coordinates(self, s: int) -> tuple:
         """Indices of the s − h independent coordinates (all s without `dependent`)."""
         dep = self.dependent or ()
@@ -508,7 +513,7 @@ def _reduced(mech: Mechanism, s: int, carried: bool) -> Mechanism:
         if not carried:
             return p, None
         user, start = p
-        return user, (None if mech.guess is not None else start)
+        return user, mech.newton_start(start)
 
     def full(qi, qdi, t, p):
         user, start = split(p)

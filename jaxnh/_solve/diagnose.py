@@ -20,7 +20,7 @@ import jax
 import jax.flatten_util
 import jax.numpy as jnp
 
-from jaxnh._base.linalg import value_and_jacfwd
+from jaxnh._base.linalg import pick, value_and_jacfwd
 from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
@@ -54,12 +54,10 @@ def on_branch(mech, q, t, params):
     between two branches.
     """
     q = jax.lax.stop_gradient(q)
-    dep = mech.dependent
+    given = pick(q, mech.dependent)
     # Newton from the guess if there is one, else from q's own dependent coordinates (as simulate)
-    start = None if mech.guess is not None else jnp.stack([q[i] for i in dep])
-    solved = mech.coordinates(jnp.stack([q[i] for i in mech.free_coordinates(q.shape[0])]), t, params, start)
-    given = jnp.stack([q[i] for i in dep])
-    reached = jnp.stack([solved[i] for i in dep])
+    solved = mech.coordinates(pick(q, mech.free_coordinates(q.shape[0])), t, params, mech.newton_start(given))
+    reached = pick(solved, mech.dependent)
     tol = jnp.finfo(q.dtype).eps ** 0.25 * (1 + jnp.abs(given))
     return jnp.all(jnp.abs(reached - given) <= tol)
 

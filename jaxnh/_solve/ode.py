@@ -10,11 +10,10 @@ import jax.flatten_util
 import jax.numpy as jnp
 
 from jaxnh._base.host import as_float, as_time
-from jaxnh._base.linalg import pick
 from jaxnh._equations import as_formulation, Formulation, formulation
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import _flat_mask, _masked_rms
-from jaxnh._solve.simulate import field, reindexed
+from jaxnh._solve.simulate import eliminate, field
 from jaxnh._solve.solution import Expansion
 from jaxnh._solve.stepping import MappedSolver
 
@@ -100,10 +99,8 @@ def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independen
     t0 = as_time(t0, q0)
     expand = None
     if mech.dependent is not None:  # as in simulate: the dependent coordinates are eliminated
-        free, expand = mech.free_coordinates(q0.shape[0]), Expansion(mech)
-        params = (params, jax.lax.stop_gradient(pick(q0, mech.dependent)))
-        mech, q0, qd0 = mech.reduced_from_start(q0.shape[0]), pick(q0, free), pick(qd0, free)
-        method, independent = reindexed(as_formulation(method, independent), free), None
+        mech, method, params, q0, qd0, expand = eliminate(mech, as_formulation(method, independent), params, q0, qd0)
+        independent = None
     form = formulation(mech, method, q0, qd0, t0, params, independent)
     y0 = form.state(q0, qd0, t0, params)
     return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form, expand=expand)

@@ -634,6 +634,21 @@ def reindexed(form, free: tuple):
     return dataclasses.replace(form, independent=tuple(free.index(i) for i in ind))
 
 
+def eliminate(mech: Mechanism, form, params, q0, qd0):
+    """The solve of a mechanism with `dependent` coordinates, set up in the s − h others.
+
+    Returns (the reduced mechanism, `form` with its independent velocities among the free
+    coordinates, the reduced mechanism's params `(params, start)` with Newton's start at q0's
+    dependent coordinates (the branch q0 lies on), q0 and qd0 of the free coordinates, and the
+    `Expansion` that maps the solve's states back to all coordinates).
+    """
+    free = mech.free_coordinates(q0.shape[0])
+    start = jax.lax.stop_gradient(pick(q0, mech.dependent))
+    run = (params, jnp.where(jnp.isfinite(start), start, 0.0))
+    reduced = mech.reduced_from_start(q0.shape[0])
+    return reduced, reindexed(form, free), run, pick(q0, free), pick(qd0, free), Expansion(mech)
+
+
 def _run_traced(
     mech,
     form,
@@ -665,15 +680,10 @@ def _run_traced(
         # holonomic constraints solved for the dependent coordinates: the solve integrates the
         # mechanism in the s − h others, with Newton's method started at q0's dependent
         # coordinates (the branch q0 is on), and the outputs are mapped back to all s
-        full, free = mech, mech.free_coordinates(s)
-        full_form = Lagrange().bind(full, s, m)  # the full initial state is checked as given
-        form = reindexed(form, free)
-        mech, expand = full.reduced_from_start(s), Expansion(full)
-        start = jax.lax.stop_gradient(pick(q0, full.dependent))
-        run = (params, jnp.where(jnp.isfinite(start), start, 0.0))
-        q0, qd0 = pick(q0, free), pick(qd0, free)
+        full, full_form = mech, Lagrange().bind(mech, s, m)  # the full initial state is checked as given
+        mech, form, run, q0, qd0, expand = eliminate(full, form, params, q0, qd0)
         m = mech.check_shapes(q0, qd0, t0, run)
-        s = len(free)
+        s = q0.shape[0]
     if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
         form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
     form = form.bind(mech, s, m)

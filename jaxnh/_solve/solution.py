@@ -50,8 +50,7 @@ class Expansion(eqx.Module):
 
     def __call__(self, q, qd, t, run):
         params, start = run
-        start = None if self.full.guess is not None else start
-        return (*self.full.full_state(q, qd, t, params, start), params)
+        return (*self.full.full_state(q, qd, t, params, self.full.newton_start(start)), params)
 
 
 class Solution(eqx.Module):
