@@ -18,13 +18,13 @@ later processes load compiled programs instead of compiling them again.
 
 import importlib
 import os
-from typing import TYPE_CHECKING
+from typing import Any, TYPE_CHECKING
 
 import jax
 
 
 if os.environ.get("JAXNH_X64", "1") != "0":
-    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_x64", True)  # pyright: ignore[reportUnknownMemberType] (JAX leaves it unannotated)
 
 from jaxnh import equations, linalg, profiles, rigid, solvers  # noqa: E402
 from jaxnh._analysis.friction_margin import stick_margin, StickMargin  # noqa: E402
@@ -71,7 +71,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name):
+def __getattr__(name: str) -> Any:
     if name in _LAZY:
         module, attr = _LAZY[name]
         value = importlib.import_module(module)
@@ -81,7 +81,7 @@ def __getattr__(name):
     raise AttributeError(f"module 'jaxnh' has no attribute {name!r}")
 
 
-def __dir__():
+def __dir__() -> list[str]:
     return sorted(__all__ + ["__version__"])
 
 

@@ -50,15 +50,6 @@ def assert_bad_input(code, err, pattern):
     assert re.search(pattern, err), err
 
 
-@pytest.fixture(autouse=True)
-def _no_compilation_cache(monkeypatch):
-    """The command line turns JAX's persistent compilation cache on for its process; run in-process
-    here, it would stay on for every later test of this worker, which would then read and write
-    ~/.cache/jaxnh beside other processes. The tests run with it off (JAXNH_CACHE_DIR=off);
-    tests/test_cache.py tests the cache itself."""
-    monkeypatch.setenv("JAXNH_CACHE_DIR", "off")
-
-
 @pytest.fixture
 def no_fit(monkeypatch):
     """Fail loudly if a test reaches the fit: the checks must come first."""

@@ -19,7 +19,9 @@ Checked here, by parsing every module (no import is executed):
 * there is no cycle among modules, counting every import, inside functions too;
 * an import inside a function (or under `if`/`try`) is only of an optional dependency
   (pandas, matplotlib, xarray), and says so in a comment or is named in `OPTIONAL`;
-* private internals of JAX and equinox appear only in `jaxnh/_base/compat.py`.
+* private internals of JAX and equinox appear only in `jaxnh/_base/compat.py`;
+* a public module that re-exports `from <implementation> import *` lists the same `__all__` as its
+  implementation, written out (type checkers need a literal list, so it cannot be copied at run time).
 """
 
 import ast
@@ -150,6 +152,32 @@ def test_private_internals_only_in_the_compatibility_module():
             continue
         for i, text in enumerate(path.read_text().splitlines(), 1):
             assert not pattern.search(text), f"{name}:{i} uses a private name of JAX or equinox: {text.strip()}"
+
+
+def literal_all(path: pathlib.Path) -> list[str]:
+    """The `__all__` of a module, which must be a literal list of strings."""
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+            try:
+                return list(ast.literal_eval(node.value))
+            except ValueError:
+                pytest.fail(f"{path.name}: __all__ is not a literal list; type checkers cannot read it")
+    pytest.fail(f"{path.name} has no __all__")
+
+
+@pytest.mark.parametrize("name", sorted(FACADES))
+def test_public_modules_list_the_names_of_their_implementation(name):
+    stars = [
+        node.module
+        for node in ast.parse(MODULES[name].read_text()).body
+        if isinstance(node, ast.ImportFrom) and node.module and [a.name for a in node.names] == ["*"]
+    ]
+    if not stars:  # re-exports names one by one (jaxnh.cli): its __all__ is its own
+        return
+    assert len(stars) == 1, f"{name} re-exports {stars}: a public module re-exports one implementation module"
+    assert literal_all(MODULES[name]) == literal_all(MODULES[stars[0]]), (
+        f"{name}.__all__ differs from {stars[0]}.__all__: copy the implementation's list"
+    )
 
 
 def test_the_layering_check_can_fail(tmp_path, monkeypatch):

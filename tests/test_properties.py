@@ -149,6 +149,7 @@ def pointwise(c, q, qd_guess, t, independent):
     qd = nh.consistent_velocities(MECH, q, qd_guess, t, c)
     a_l, lam_l = nh.accelerations(MECH, q, qd, t, c, method="lagrange")
     a_a, lam_a = nh.accelerations(MECH, q, qd, t, c, method="appell", independent=independent)
+    assert lam_l is not None and lam_a is not None  # both forms return multipliers
     # differentiated constraint A qdd + b, evaluated from the user's c by a jvp
     cdot = jax.jvp(lambda a, b, s: constraints(a, b, s, c), (q, qd, t), (qd, a_l, jnp.ones_like(t)))[1]
     dh = jax.jvp(lambda a, b, s: energy_function(a, b, s, c), (q, qd, t), (qd, a_l, jnp.ones_like(t)))[1]

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.simulate import simulate
 
@@ -49,7 +50,16 @@ class StickMargin(eqx.Module):
     solution: Any
 
 
-def stick_margin(mech: Mechanism, params, q0, qd0, ts, *, temperature: float = 0.01, **simulate_kwargs) -> StickMargin:
+def stick_margin(
+    mech: Mechanism,
+    params: PyTree,
+    q0: ArrayInput,
+    qd0: ArrayInput,
+    ts: ArrayInput,
+    *,
+    temperature: float = 0.01,
+    **simulate_kwargs: Any,
+) -> StickMargin:
     """The stick margin of each friction contact of `mech` along its motion with every contact held.
 
     Arguments:

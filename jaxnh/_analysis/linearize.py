@@ -44,18 +44,20 @@ over speeds or parameters works as usual.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 from jaxtyping import Array, Float
 
 from jaxnh._base.compile import one_shot_jit
 from jaxnh._base.host import as_data, as_float, as_time
 from jaxnh._base.linalg import solve_spd, value_and_jacfwd
 from jaxnh._base.status import is_traced
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations.split import (
     best_partition,
     choose_independent,
@@ -114,16 +116,16 @@ def _indices(name, idx, s):
 
 def linearize(
     mech: Mechanism,
-    params,
-    q,
-    qd,
-    t=0.0,
+    params: PyTree,
+    q: ArrayInput,
+    qd: ArrayInput,
+    t: ArrayLike = 0.0,
     *,
-    coordinates=None,
-    speeds=None,
+    coordinates: Optional[Iterable[int]] = None,
+    speeds: Optional[Iterable[int]] = None,
     method: str = "lagrange",
-    complete: Optional[Callable] = None,
-    accelerations=None,
+    complete: Optional[Callable[..., Any]] = None,
+    accelerations: Optional[ArrayInput] = None,
 ) -> Linearization:
     """Linearise the motion of `mech` about the state (q, qd) at time t.
 

@@ -38,6 +38,8 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from jaxnh._base.types import PyTree
+
 
 __all__ = ["sweep", "default_mesh", "DEFAULT_CHUNK_PER_DEVICE"]
 
@@ -62,8 +64,8 @@ def default_mesh(devices: Optional[Sequence[Any]] = None) -> Mesh:
 
 
 def sweep(
-    fn: Callable,
-    *args,
+    fn: Callable[..., Any],
+    *args: PyTree,
     in_axes: Any = 0,
     chunk_size: Optional[int] = None,
     mesh: Optional[Mesh] = None,

@@ -38,6 +38,7 @@ from __future__ import annotations
 import os
 import stat
 import warnings
+from typing import Mapping
 
 import jax
 
@@ -63,7 +64,7 @@ class UnsafeCacheDirWarning(UserWarning):
     """The compilation-cache folder could be written by someone else; it is not used."""
 
 
-def cache_dir(environ=None) -> str | None:
+def cache_dir(environ: Mapping[str, str] | None = None) -> str | None:
     """The folder jaxnh would use for compiled programs, or None when disabled.
 
     `$JAXNH_CACHE_DIR` (off/0/none/empty: disabled), else `$XDG_CACHE_HOME/jaxnh`,
@@ -163,7 +164,7 @@ def _user_configured() -> bool:
     return not jax.config.jax_enable_compilation_cache  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def enable_compilation_cache(environ=None) -> str | None:
+def enable_compilation_cache(environ: Mapping[str, str] | None = None) -> str | None:
     """Turn on JAX's persistent compilation cache in the user's cache folder.
 
     Call it once, right after importing jaxnh and before anything is compiled:

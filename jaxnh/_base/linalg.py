@@ -126,10 +126,20 @@ def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[A
     null space of G, spanned by L⁻ᵀ e_k for the dropped k, is then removed by
     a masked Gram–Schmidt projection, which leaves the minimum-norm solution.
     Differentiable wherever the rank is locally constant.
+
+    Written out element by element up to `UNROLL_MAX` constraints; beyond, the
+    same factorisation runs as a loop over columns with array operations
+    (`_solve_psd_min_norm_looped`): element by element it takes O(m³) scalar
+    operations (the null-space basis alone m³), each compiled separately, so its
+    compile time grew faster than cubically (m = 9: 1 792 operations; m = 17:
+    9 436, minutes of XLA compilation, and a Lagrange `simulate` holds several
+    copies: the solver's stages, the first step, the stiffness estimate's jvp).
     """
     m = G.shape[0]
     if m == 0:
         return r
+    if m > UNROLL_MAX:
+        return _solve_psd_min_norm_looped(G, r)
     rtol = pivot_rtol(G.dtype)
     one = jnp.ones((), G.dtype)
     zero = jnp.zeros((), G.dtype)
@@ -174,6 +184,38 @@ def solve_psd_min_norm(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[A
     for b in basis:
         x = x - b * jnp.dot(b, x)
     return x
+
+
+def _solve_psd_min_norm_looped(G: Float[Array, "m m"], r: Float[Array, " m"]) -> Float[Array, " m"]:
+    """`solve_psd_min_norm` for large m: the same LDLᵀ with redundant rows dropped, right-looking
+    (one rank-one update of the Schur complement per column) in a `fori_loop`, so the program's
+    size does not grow with m; substitutions and the null-space projection by LAPACK."""
+    m = G.shape[0]
+    dtype = G.dtype
+    rtol = pivot_rtol(dtype)
+    one = jnp.ones((), dtype)
+    idx = jnp.arange(m)
+    floor = rtol * jnp.abs(jnp.diagonal(G)) + jnp.finfo(dtype).tiny
+
+    def column(j, carry):
+        S, L, dinv, kept = carry  # S: the Schur complement G − Σ_{k<j} d_k l_k l_kᵀ
+        dj = S[j, j]
+        keep = dj > floor[j]
+        inv = jnp.where(keep, 1 / jnp.where(keep, dj, one), 0.0)
+        lj = jnp.where(idx > j, S[:, j] * inv, (idx == j).astype(dtype))
+        S = S - jnp.where(keep, dj, 0.0) * lj[:, None] * lj[None, :]
+        return S, L.at[:, j].set(lj), dinv.at[j].set(inv), kept.at[j].set(keep)
+
+    init = (G, jnp.zeros_like(G), jnp.zeros((m,), dtype), jnp.zeros((m,), bool))
+    _, L, dinv, kept = jax.lax.fori_loop(0, m, column, init)
+    # forward, diagonal, back substitution (L has a unit diagonal)
+    y = jsl.solve_triangular(L, r, lower=True, unit_diagonal=True)
+    x = jsl.solve_triangular(L, y * dinv, lower=True, trans="T", unit_diagonal=True)
+    # null space of G: the columns L⁻ᵀ e_k of the dropped k (zero columns for the kept ones);
+    # x minus its orthogonal projection onto them (the kept block of the Gram matrix set to 1)
+    N = jsl.solve_triangular(L, jnp.diag((~kept).astype(dtype)), lower=True, trans="T", unit_diagonal=True)
+    C = N.T @ N + jnp.diag(kept.astype(dtype))
+    return x - N @ jnp.linalg.solve(C, N.T @ x)
 
 
 def solve_square(A: Float[Array, "n n"], b: Float[Array, " n *k"]) -> Float[Array, " n *k"]:

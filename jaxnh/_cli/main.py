@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import sys
 from importlib import metadata
+from typing import Sequence
 
 from jaxnh._base.atomic import check_writable_dir
 from jaxnh._base.cache import enable_compilation_cache
@@ -80,7 +81,7 @@ def version() -> str:
         return "unknown"
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Run `jaxnh` with `argv` (default: sys.argv[1:]); returns the exit status (0, 1, 2 or 130)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["design"]:  # its own parser, options and set-up (`jaxnh design --help`)

@@ -7,12 +7,15 @@ evaluates one state.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import equinox as eqx
 import jax
 import jax.core
 import jax.numpy as jnp
 
 from jaxnh._base.host import as_data, as_float, as_time
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.base import Formulation, multipliers_from_accelerations
 from jaxnh._equations.lagrange import Lagrange
@@ -79,7 +82,15 @@ def formulation(mech: Mechanism, method, q, qd, t, params, independent=None) -> 
     return form.bind(mech, jnp.shape(q)[0], m)
 
 
-def accelerations(mech: Mechanism, q, qd, t, params, method="lagrange", independent=None):
+def accelerations(
+    mech: Mechanism,
+    q: ArrayInput,
+    qd: ArrayInput,
+    t: ArrayInput,
+    params: PyTree,
+    method: str | Formulation = "lagrange",
+    independent: Sequence[int] | None = None,
+) -> tuple[jax.Array, jax.Array | None]:
     """Accelerations and multipliers of a mechanism at one state.
 
     Runs compiled (once per mechanism, method and shapes) and works under

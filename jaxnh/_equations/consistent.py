@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from jaxnh._base.host import as_data, as_float, as_time
 from jaxnh._base.linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
 from jaxnh._model.mechanism import Mechanism
 
@@ -44,7 +45,9 @@ def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
     return qd
 
 
-def consistent_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
+def consistent_velocities(
+    mech: Mechanism, q: ArrayInput, qd: ArrayInput, t: ArrayInput, params: PyTree, iterations: int = 8
+) -> jax.Array:
     """The velocities nearest to `qd` that satisfy the constraints.
 
     "Nearest" is in the kinetic-energy metric: the correction `δ` minimises

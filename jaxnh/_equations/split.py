@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxnh._base.linalg import pick, solve_square, value_and_jacfwd
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._model.mechanism import check_independent, Mechanism
 
 
@@ -362,7 +363,9 @@ def resolve_independent(mech: Mechanism, independent, s: int, m: int) -> Optiona
     return check_independent(independent, s, m)
 
 
-def choose_independent(mech: Mechanism, q, qd, t, params) -> tuple:
+def choose_independent(
+    mech: Mechanism, q: ArrayInput, qd: ArrayInput, t: ArrayInput, params: PyTree
+) -> tuple[int, ...]:
     """Indices of the s − m independent velocities that the automatic choice would
     take at a concrete state (for display, or to fix a partition by hand).
 

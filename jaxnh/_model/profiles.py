@@ -51,6 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxnh._base.types import PyTree
+
 
 __all__ = [
     "Profile",
@@ -90,7 +92,7 @@ class Profile(eqx.Module):
         return jax.jvp(self.__call__, (t,), (jnp.ones_like(t),))[1]
 
 
-def trainable(tree):
+def trainable(tree: PyTree) -> PyTree:
     """A pytree of bools like `tree` marking the leaves that may be estimated.
 
     Inside a `Profile` only its `trainable_fields` are marked (recursively for

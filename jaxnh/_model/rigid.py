@@ -23,14 +23,16 @@ Inertia tensors are about the mass centre, in body axes, kg·m².
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from jaxnh._base.linalg import mm
+from jaxnh._base.types import ArrayInput
 
 
 __all__ = [
@@ -50,28 +52,28 @@ __all__ = [
 # --- rotations ----------------------------------------------------------------
 
 
-def rot_x(a):
+def rot_x(a: ArrayLike) -> jax.Array:
     """Rotation by angle `a` (rad) about the x axis, a 3×3 matrix."""
     c, s = jnp.cos(a), jnp.sin(a)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return jnp.stack([jnp.stack([o, z, z]), jnp.stack([z, c, -s]), jnp.stack([z, s, c])])
 
 
-def rot_y(a):
+def rot_y(a: ArrayLike) -> jax.Array:
     """Rotation by angle `a` (rad) about the y axis, a 3×3 matrix."""
     c, s = jnp.cos(a), jnp.sin(a)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return jnp.stack([jnp.stack([c, z, s]), jnp.stack([z, o, z]), jnp.stack([-s, z, c])])
 
 
-def rot_z(a):
+def rot_z(a: ArrayLike) -> jax.Array:
     """Rotation by angle `a` (rad) about the z axis, a 3×3 matrix."""
     c, s = jnp.cos(a), jnp.sin(a)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
 
 
-def skew(w):
+def skew(w: jax.Array | np.ndarray) -> jax.Array:
     """The cross-product matrix `[w]×` with `[w]× x = w × x`."""
     z = jnp.zeros_like(w[0])
     return jnp.stack(
@@ -83,12 +85,12 @@ def skew(w):
     )
 
 
-def vee(W):
+def vee(W: jax.Array | np.ndarray) -> jax.Array:
     """The vector `w` of a (nearly) skew-symmetric matrix `W = [w]×` (its skew part)."""
     return 0.5 * jnp.stack([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
 
 
-def rot_axis(axis, a):
+def rot_axis(axis: ArrayInput, a: ArrayLike) -> jax.Array:
     """Rotation by angle `a` (rad) about the unit vector `axis` (Rodrigues' formula)."""
     axis = jnp.asarray(axis, dtype=jnp.result_type(a, float))
     K = skew(axis)
@@ -98,13 +100,13 @@ def rot_axis(axis, a):
 # --- differentiation along the motion ----------------------------------------------
 
 
-def time_derivative(f: Callable, q, qd, t):
+def time_derivative(f: Callable[..., Any], q: ArrayLike, qd: ArrayLike, t: ArrayLike) -> tuple[Any, Any]:
     """`f(q, t)` and its rate `(∂f/∂q) q̇ + ∂f/∂t` along the motion (any pytree output)."""
     t = jnp.asarray(t, dtype=jnp.result_type(q))
     return jax.jvp(f, (q, t), (qd, jnp.ones_like(t)))
 
 
-def angular_velocity(R, Rdot, frame: str = "body"):
+def angular_velocity(R: jax.Array | np.ndarray, Rdot: jax.Array | np.ndarray, frame: str = "body") -> jax.Array:
     """Angular velocity from an orientation R and its rate Ṙ, rad/s.
 
     `frame="body"`: components in body axes, `vee(Rᵀ Ṙ)`; `frame="space"`:

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Iterable, Optional
 
 import diffrax
 import equinox as eqx
 import jax.flatten_util
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from jaxnh._base.host import as_float, as_time
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations import as_formulation, Formulation, formulation
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.sensitivity import _flat_mask, _masked_rms
@@ -69,7 +71,16 @@ class ODE(eqx.Module):
         return _masked_rms(flat, _flat_mask(self.form.error_mask(), self.y0))
 
 
-def ode(mech: Mechanism, params, q0, qd0, t0=0.0, method="appell", *, independent=None) -> ODE:
+def ode(
+    mech: Mechanism,
+    params: PyTree,
+    q0: ArrayInput,
+    qd0: ArrayInput,
+    t0: ArrayLike = 0.0,
+    method: str | Formulation = "appell",
+    *,
+    independent: Optional[Iterable[int]] = None,
+) -> ODE:
     """The equations of motion of `mech` as a diffrax term, initial state and unpacking.
 
     Arguments:

@@ -40,6 +40,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from jaxnh._base.compat import no_host_callbacks
+from jaxnh._base.types import PyTree
 from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
 
 
@@ -366,7 +367,12 @@ def count_float_scalars(*trees) -> int:
     return sum(math.prod(jnp.shape(x)) for x in jtu.tree_leaves(trees) if eqx.is_inexact_array(x))
 
 
-def choose_adjoint(adjoint, *inputs, dense: bool = False, max_forward: int = FORWARD_MAX_PARAMETERS):
+def choose_adjoint(
+    adjoint: diffrax.AbstractAdjoint | ForwardSensitivity | None,
+    *inputs: PyTree,
+    dense: bool = False,
+    max_forward: int = FORWARD_MAX_PARAMETERS,
+) -> diffrax.AbstractAdjoint | ForwardSensitivity:
     """The one forward/reverse policy of `simulate` and `fit`.
 
     `adjoint=None`: `ForwardSensitivity()` for at most `max_forward` float

@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Iterable, Optional, TypeGuard
 
 import diffrax
 import equinox as eqx
@@ -27,7 +27,8 @@ from jaxnh._base.compat import status_code
 from jaxnh._base.host import as_data, as_float
 from jaxnh._base.linalg import pick
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
-from jaxnh._equations import Appell, as_formulation, Lagrange
+from jaxnh._base.types import ArrayInput, PyTree
+from jaxnh._equations import Appell, as_formulation, Formulation, Lagrange
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints
@@ -80,7 +81,9 @@ stages (benchmarks/RESULTS.md).
 """
 
 
-def default_solver(rtol: float, operations: Optional[int] = None, method: str = "appell"):
+def default_solver(
+    rtol: float, operations: Optional[int] = None, method: str = "appell"
+) -> diffrax.AbstractSolver[Any]:
     """The explicit solver used when `simulate(solver=None)`.
 
     Arguments:
@@ -186,29 +189,29 @@ def _record(record, form) -> tuple:
 
 def simulate(
     mech: Mechanism,
-    params,
-    q0,
-    qd0,
-    ts,
-    method="appell",
-    solver=None,
+    params: PyTree,
+    q0: ArrayInput,
+    qd0: ArrayInput,
+    ts: ArrayInput,
+    method: str | Formulation = "appell",
+    solver: Optional[diffrax.AbstractSolver[Any]] = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
-    record=(),
+    record: str | Iterable[str] = (),
     *,
-    independent=None,
+    independent: Optional[Iterable[int]] = None,
     saveat: Optional[diffrax.SaveAt] = None,
-    stepsize_controller: Optional[diffrax.AbstractStepSizeController] = None,
+    stepsize_controller: Optional[diffrax.AbstractStepSizeController[Any, Any]] = None,
     event: Optional[diffrax.Event] = None,
-    progress_meter: Optional[diffrax.AbstractProgressMeter] = None,
+    progress_meter: Optional[diffrax.AbstractProgressMeter[Any]] = None,
     adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None,
     max_steps: int = 100_000,
-    dt0=None,
+    dt0: Optional[float | jax.Array] = None,
     throw: bool = True,
     stabilization: Optional[str] = None,
-    baumgarte_rate=None,
-    dtmax=None,
-    step_ts=None,
+    baumgarte_rate: Optional[float | jax.Array] = None,
+    dtmax: Optional[float | jax.Array] = None,
+    step_ts: Optional[ArrayInput] = None,
     max_transitions: int = MAX_TRANSITIONS,
 ) -> Solution:
     """Integrate the equations of motion of `mech` from (q0, qd0) at ts[0].
@@ -563,11 +566,11 @@ def _refuse_complex(params):
     )
 
 
-def _is_jax_array(x, dtype) -> bool:
+def _is_jax_array(x: object, dtype: Any) -> TypeGuard[jax.Array]:
     return isinstance(x, jax.Array) and x.dtype == dtype
 
 
-def _is_float_jax_array(x) -> bool:
+def _is_float_jax_array(x: object) -> TypeGuard[jax.Array]:
     return isinstance(x, jax.Array) and x.dtype in (jnp.float32, jnp.float64)
 
 

@@ -36,8 +36,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Optional, Sequence
+from typing import Any, Optional, Sequence, Union
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -45,6 +46,7 @@ import numpy as np
 import optax
 
 from jaxnh._base.compat import status_code
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import trainable
 from jaxnh._solve.sensitivity import ForwardSensitivity
@@ -109,6 +111,10 @@ class ChannelNoise:
     @property
     def total(self) -> float:
         return float(math.sqrt(self.std**2 + self.step**2 / 12.0))
+
+
+NoiseSpec = Union[float, ChannelNoise, dict[str, float], dict[str, ChannelNoise], dict[str, Union[float, ChannelNoise]]]
+"""The `noise` of `experiment`: one standard deviation or `ChannelNoise` for every channel, or a dict by channel."""
 
 
 def encoder_noise(counts_per_rev: float, jitter_std: float = 0.0) -> ChannelNoise:
@@ -233,17 +239,17 @@ def _nominal_record(mech, params, ts, q0, qd0, observe, names, method, rtol, ato
 
 def experiment(
     mech: Mechanism,
-    params,
-    ts,
+    params: PyTree,
+    ts: ArrayInput,
     *,
     free: Sequence[str],
     positive: Sequence[str] = (),
     observe: Optional[Sequence[str]] = None,
-    noise=None,
-    q0=None,
-    qd0=None,
+    noise: Optional[NoiseSpec] = None,
+    q0: Optional[ArrayInput] = None,
+    qd0: Optional[ArrayInput] = None,
     method: str = "appell",
-    solver=None,
+    solver: Optional[diffrax.AbstractSolver[Any]] = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
@@ -380,7 +386,7 @@ def _jacobian(exp: Experiment, params):
     return J, sol.multipliers, status_code(sol.status)
 
 
-def predict(exp: Experiment, params=None, *, rank_tol: float = 1e-8) -> Prediction:
+def predict(exp: Experiment, params: Optional[PyTree] = None, *, rank_tol: float = 1e-8) -> Prediction:
     """Predicted standard errors and identifiability of `exp` with the inputs
     and nominal values in `params` (default: those `exp` was made with).
 
@@ -673,11 +679,11 @@ def input_spec(params, inputs: Sequence[str]):
 
 def optimal_design(
     exp: Experiment,
-    params,
+    params: PyTree,
     inputs: Sequence[str],
     criterion: str = "D",
     *,
-    of=None,
+    of: Optional[Sequence[str]] = None,
     limits: Optional[Limits] = None,
     starts: int = 4,
     steps: int = 100,

@@ -20,10 +20,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from jaxnh._base.compile import one_shot_jit
 from jaxnh._base.dataframe import fit_result_to_dict
 from jaxnh._base.linalg import value_and_jacfwd
+from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations.split import choose_independent
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import Sampled
@@ -251,24 +253,24 @@ def _independent_from_rates(problem: Problem, q, rates, t, params):
 
 def prepare(
     mech: Mechanism,
-    params,
+    params: PyTree,
     data: Record,
     *,
     free: Sequence[str],
     positive: Sequence[str] = (),
     observe: Optional[Sequence[str]] = None,
-    noise=None,
-    q0=None,
-    qd0=None,
+    noise: dict[str, float] | ArrayInput | None = None,
+    q0: Optional[ArrayInput] = None,
+    qd0: Optional[ArrayInput] = None,
     method: str = "appell",
-    solver=None,
+    solver: Optional[diffrax.AbstractSolver[Any]] = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
     shooting: int = 1,
     differentiation: str = "forward",
     defect_weight: float = 10.0,
-):
+) -> tuple[Problem, jax.Array, Observations, tuple[str, ...]]:
     """Set up the least-squares problem without solving it.
 
     Takes the same arguments as `fit` (see there). Returns
@@ -439,21 +441,21 @@ def fit_solver(solver, params, rtol: float):
 
 def fit(
     mech: Mechanism,
-    params,
+    params: PyTree,
     data: Record,
     *,
     free: Sequence[str],
     positive: Sequence[str] = (),
     observe: Optional[Sequence[str]] = None,
-    noise=None,
-    q0=None,
-    qd0=None,
+    noise: dict[str, float] | ArrayInput | None = None,
+    q0: Optional[ArrayInput] = None,
+    qd0: Optional[ArrayInput] = None,
     method: str = "appell",
-    solver=None,
-    rtol=1e-8,
+    solver: Optional[diffrax.AbstractSolver[Any]] = None,
+    rtol: float | str = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
-    optimizer="levenberg-marquardt",
+    optimizer: str | optax.GradientTransformation = "levenberg-marquardt",
     tol: float = 1e-8,
     max_iterations: int = 100,
     shooting: int = 1,

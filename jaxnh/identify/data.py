@@ -21,11 +21,14 @@ import math
 import os
 import time
 from importlib import resources
+from typing import Any, Callable, Iterable, Sequence
 
+import jax
 import numpy as np
 
 from jaxnh._base.atomic import atomic_write
 from jaxnh._base.host import array_module
+from jaxnh._base.types import ArrayInput
 
 
 __all__ = [
@@ -279,13 +282,13 @@ def _check_columns(cols: dict, where: str, min_samples: int = MIN_SAMPLES, lines
 
 
 def read_csv(
-    path,
-    coordinates=("phi1", "phi2"),
-    inputs=("M1", "M2"),
+    path: str | os.PathLike[str],
+    coordinates: Sequence[str] = ("phi1", "phi2"),
+    inputs: Sequence[str] = ("M1", "M2"),
     min_samples: int = MIN_SAMPLES,
     max_samples: int | None = MAX_SAMPLES,
     every: int = 1,
-    progress=None,
+    progress: Callable[[int, int], Any] | None = None,
 ) -> Record:
     """Read a measured record from a CSV file with a header row.
 
@@ -492,7 +495,7 @@ def _looks_numeric(s: str) -> bool:
         return False
 
 
-def write_csv(record: Record, path, comments=()) -> None:
+def write_csv(record: Record, path: str | os.PathLike[str], comments: Iterable[str] = ()) -> None:
     """Write `record` as CSV: comment lines, a header `t, channels..., inputs...`, rows.
 
     The file is written to a temporary name in the same folder and renamed
@@ -516,7 +519,7 @@ def load_default() -> Record:
     return _parse(text, f"jaxnh/data/{DEFAULT_DATA}", ("phi1", "phi2"), ("M1", "M2"), MIN_SAMPLES)
 
 
-def noise_level(y, axis: int = 0):
+def noise_level(y: ArrayInput, axis: int = 0) -> np.ndarray | jax.Array:
     """Standard deviation of white measurement noise in a smooth sampled signal.
 
     Third differences remove a smooth motion (what is left of it is of order

@@ -34,7 +34,7 @@ that the first, normalised Adam step only moves off the degenerate point.
 
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar, Optional
+from typing import Any, Callable, ClassVar, Optional, Sequence
 
 import equinox as eqx
 import jax
@@ -44,6 +44,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
+from jaxnh._base.types import PyTree
 from jaxnh._model.profiles import Bounded, Profile, trainable as trainable_leaves  # noqa: F401  (Bounded re-exported)
 
 
@@ -89,14 +90,14 @@ class Chebyshev(Profile):
 
 def optimize(
     loss: Callable[[Any], Any],
-    params,
+    params: PyTree,
     *,
     optimizer: Optional[optax.GradientTransformation] = None,
     steps: int = 200,
     trainable: Any = None,
     callback: Optional[Callable[[int, float, Any], Any]] = None,
     gradient: str = "reverse",
-):
+) -> tuple[PyTree, np.ndarray]:
     """Minimise `loss(params)` with optax, differentiating through `simulate`.
 
     Arguments:
@@ -200,14 +201,14 @@ def _optimize_value(loss, theta, rest):
 
 def multistart(
     loss: Callable[[Any], Any],
-    starts,
+    starts: Sequence[PyTree],
     *,
     accept: Optional[Callable[[Any], Any]] = None,
     learning_rate: float = 0.05,
     optimizer: Optional[optax.GradientTransformation] = None,
     progress: bool = False,
-    **kwargs,
-):
+    **kwargs: Any,
+) -> tuple[PyTree, list[dict[str, Any]], int]:
     """`optimize` from several starting pytrees; keep the best acceptable result.
 
     Arguments:
@@ -267,7 +268,7 @@ def multistart(
     return runs[k]["params"], runs, k
 
 
-def fd_gradient(f: Callable[[Any], Any], params, h: float = 1e-6, trainable: Any = None):
+def fd_gradient(f: Callable[[Any], Any], params: PyTree, h: float = 1e-6, trainable: Any = None) -> PyTree:
     """Central-difference gradient of the scalar `f` over the trainable leaves
     of `params` (default as in `optimize`, or those marked by `trainable`), with step `h` scaled
     by `max(1, |x|)` for each entry. Returns a pytree like `params` with None

@@ -26,7 +26,7 @@ compiled loop holds one copy of that pass; `Problem.residuals` wraps it in a
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+from typing import Any, Optional
 
 import diffrax
 import equinox as eqx
@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.types import ArrayInput
 from jaxnh._equations import as_formulation, Lagrange
 from jaxnh._equations.split import VelocitySplit
 from jaxnh._model.mechanism import Mechanism
@@ -102,7 +103,7 @@ class Problem(eqx.Module):
     starts: tuple = eqx.field(static=True)
     length: int = eqx.field(static=True)
     method: str = eqx.field(static=True)
-    solver: object = eqx.field(static=True)
+    solver: Optional[diffrax.AbstractSolver[Any]] = eqx.field(static=True)
     tol: jax.Array
     max_steps: int = eqx.field(static=True)
     differentiation: str = eqx.field(static=True)
@@ -296,7 +297,7 @@ def _jacfwd(problem, theta, data):
     return r, J
 
 
-def value_and_jacobian(problem: Problem, theta, data: Observations):
+def value_and_jacobian(problem: Problem, theta: ArrayInput, data: Observations) -> tuple[jax.Array, jax.Array]:
     """Residuals r (N,) and their Jacobian J (N, size) at θ, by forward mode.
 
     Compiled once per problem structure, with XLA's cheapest settings when called with
@@ -491,7 +492,7 @@ def _lm_out(state: _LMState) -> dict:
 
 def solve_least_squares(
     problem: Problem,
-    theta0,
+    theta0: ArrayInput,
     data: Observations,
     tol: float = 1e-8,
     max_steps: int = 100,
@@ -500,7 +501,7 @@ def solve_least_squares(
     step_rtol: float = 1e-10,
     *,
     host: bool = False,
-):
+) -> dict[str, Any]:
     """Levenberg–Marquardt from θ0; pure JAX, so it vmaps over data and θ0.
 
     Each iteration evaluates the residuals r and their Jacobian J at one trial
@@ -542,7 +543,9 @@ def solve_least_squares(
     return _levenberg_marquardt(evaluate, theta0, problem.n_residuals(data), limits, progress, np)
 
 
-def solve_least_squares_host(problem: Problem, theta0, data: Observations, **options) -> dict:
+def solve_least_squares_host(
+    problem: Problem, theta0: ArrayInput, data: Observations, **options: Any
+) -> dict[str, Any]:
     """`solve_least_squares` for one record, iterated from Python (`host=True`; the same options).
 
     The same iteration and the same results; the loop runs on the host, so the
@@ -592,7 +595,7 @@ def lm_message(code: int, max_steps: int) -> str:
 
 
 @jax.jit
-def statistics(J, r, rank_tol: float = 1e-8, leak_tol: float = 1e-4):
+def statistics(J: ArrayInput, r: ArrayInput, rank_tol: float = 1e-8, leak_tol: float = 1e-4) -> dict[str, Any]:
     """Gauss–Newton covariance of θ from the weighted Jacobian J (N, p) and residuals r (N,).
 
     Columns of J are scaled to unit length before the SVD, so the singular

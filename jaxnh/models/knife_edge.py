@@ -27,7 +27,11 @@ Units: m, kg, kg·m², rad, s.
 
 from __future__ import annotations
 
+from typing import Any, Optional
+
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from jaxnh._model.mechanism import Mechanism
 
@@ -35,27 +39,27 @@ from jaxnh._model.mechanism import Mechanism
 __all__ = ["mechanism", "default_params", "closed_form", "kinetic", "potential", "constraint"]
 
 
-def kinetic(q, qd, t, p):
+def kinetic(q: jax.Array, qd: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
     """T = ½ m (ẋ² + ẏ²) + ½ J φ̇², J."""
     return 0.5 * p["m"] * (qd[0] ** 2 + qd[1] ** 2) + 0.5 * p["J"] * qd[2] ** 2
 
 
-def potential(q, t, p):
+def potential(q: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
     """V = −m g sin α · x, J (x down the slope)."""
     return -p["m"] * p["g"] * jnp.sin(p["alpha"]) * q[0]
 
 
-def constraint(q, qd, t, p):
+def constraint(q: jax.Array, qd: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
     """Sideways velocity of the blade, m/s: ẋ sin φ − ẏ cos φ."""
     return jnp.stack([qd[0] * jnp.sin(q[2]) - qd[1] * jnp.cos(q[2])])
 
 
-def acceleration_energy(q, qd, qdd, t, p):
+def acceleration_energy(q: jax.Array, qd: jax.Array, qdd: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
     """S = ½ m (ẍ² + ÿ²) + ½ J φ̈², J/s²."""
     return 0.5 * p["m"] * (qdd[0] ** 2 + qdd[1] ** 2) + 0.5 * p["J"] * qdd[2] ** 2
 
 
-def mechanism(independent=None) -> Mechanism:
+def mechanism(independent: Optional[tuple[int, ...]] = None) -> Mechanism:
     """The knife edge; `independent`: fixed independent velocities, or None (default) for
     the automatic choice that changes during the run (see the module note)."""
     return Mechanism(
@@ -68,12 +72,12 @@ def mechanism(independent=None) -> Mechanism:
     )
 
 
-def default_params() -> dict:
+def default_params() -> dict[str, jax.Array]:
     """m = 1 kg, J = 0.2 kg·m², g = 9.81 m/s², α = 0.3 rad."""
     return {"m": jnp.asarray(1.0), "J": jnp.asarray(0.2), "g": jnp.asarray(9.81), "alpha": jnp.asarray(0.3)}
 
 
-def closed_form(p, ts, omega):
+def closed_form(p: dict[str, Any], ts: ArrayLike, omega: ArrayLike) -> tuple[jax.Array, jax.Array]:
     """Exact q (n, 3) and q̇ (n, 3) released at rest at the origin spinning at ω (rad/s)."""
     A = p["g"] * jnp.sin(p["alpha"]) / (2 * omega**2)
     wt = omega * ts

@@ -29,7 +29,11 @@ Units: m, kg, kg·m², rad, s.
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.rigid import RigidBodies, rot_z
@@ -54,7 +58,7 @@ def bodies() -> RigidBodies:
     return RigidBodies(_poses, _inertias, names=("sleigh",))
 
 
-def knife_edge(q, qd, t, p):
+def knife_edge(q: jax.Array, qd: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
     """Sideways velocity of the blade's contact point, m/s (must vanish)."""
     th = q[2]
     return jnp.stack([-qd[0] * jnp.sin(th) + qd[1] * jnp.cos(th)])
@@ -72,23 +76,25 @@ def mechanism() -> Mechanism:
     )
 
 
-def default_params() -> dict:
+def default_params() -> dict[str, jax.Array]:
     """m = 1 kg, I_C = 0.1 kg·m² about G, a = 0.5 m (G ahead of the blade)."""
     return {"m": jnp.asarray(1.0), "I_C": jnp.asarray(0.1), "a": jnp.asarray(0.5)}
 
 
-def initial_velocities(q0, v0, w0):
+def initial_velocities(q0: jax.Array, v0: ArrayLike, w0: ArrayLike) -> jax.Array:
     """q̇ at heading q0[2] for forward speed v0 (m/s) and turning rate w0 (rad/s)."""
     th = q0[2]
     return jnp.stack([v0 * jnp.cos(th), v0 * jnp.sin(th), jnp.asarray(w0, dtype=jnp.result_type(v0, float))])
 
 
-def forward_speed(q, qd):
+def forward_speed(q: jax.Array, qd: jax.Array) -> jax.Array:
     """v = ẋ cos θ + ẏ sin θ, m/s (works on batches of states)."""
     return qd[..., 0] * jnp.cos(q[..., 2]) + qd[..., 1] * jnp.sin(q[..., 2])
 
 
-def closed_form(p, ts, v0, w0, th0=0.0):
+def closed_form(
+    p: dict[str, Any], ts: ArrayLike, v0: float | jax.Array, w0: float | jax.Array, th0: float | jax.Array = 0.0
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Exact (v, ω, θ) at times ts from v(0) = v0, ω(0) = w0, θ(0) = th0.
 
     Needs a ≠ 0 and (v0, ω0) ≠ 0. Returns three arrays shaped like ts.

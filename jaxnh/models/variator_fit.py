@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 from importlib import resources
-from typing import Optional
+from typing import Any, Optional
 
 import jax
 import jax.numpy as jnp
@@ -192,7 +192,7 @@ def fit_variator(
     return fit(V.mechanism(), p, record, free=FREE, positive=FREE, observe=observe, noise=noise, **kwargs)
 
 
-def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
+def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict[str, Any]:
     """The fit as a JSON-ready dict: `result.to_dict()` plus the variator's own keys.
 
     Every number is a finite float or None (JSON null): an undetermined
@@ -233,7 +233,7 @@ def report(result: FitResult, n_grid: int = 201, source: str = "") -> dict:
 # --- the variator's embedded set-up -----------------------------------------------------------------
 
 
-def embedded_truth() -> dict:
+def embedded_truth() -> dict[str, Any]:
     """The values the embedded record was made with (`jaxnh/data/variator_truth.json`):
     J1, J2 (kg·m²), U21 knots and values, phi0 (rad), w0 (rad/s), duration (s),
     rate (Hz), counts_per_rev, jitter_std (rad)."""
