@@ -4,7 +4,7 @@ Contenders, timed in interleaved rounds after their first (compiling) call,
 each with its error against the closed form:
 
 * `nh.simulate(...)`, a plain call with every default (the default
-  formulation, Appell's, default solver), and the same under `jax.jit`;
+  formulation, Lagrange's, default solver), and the same under `jax.jit`;
 * eq. (9) written by hand, `diffrax.diffeqsolve` with `diffrax.Tsit5`, jitted,
   its report times closed over as constants (as a script writes it), and the
   same program taking the report times as an argument (as `simulate`, which

@@ -34,7 +34,10 @@ import jax  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
-from benchmarks import reliability_cases as R  # noqa: E402
+from benchmarks import (
+    reliability_cases as R,  # noqa: E402
+    reliability_pendulum as P,  # noqa: E402
+)
 from jaxnh._base.status import describe  # noqa: E402
 
 
@@ -111,6 +114,59 @@ def run_simulate(tally, n_eager, n_jit, n_batches):
             lag = R.dataclasses.replace(case, kw=dict(method="lagrange"))
             tally.add("simulate, eager, 'lagrange'", case.cls, lag, R.run_eager(lag), case.what)
             tally.add("simulate, eager", case.cls, case, R.run_eager(case), case.what)
+
+
+def run_pendulum(tally, n):
+    """The pendulum family (benchmarks/reliability_pendulum.py): a holonomic constraint in both
+    treatments, events and dense output, consistent_velocities."""
+    with timed(tally, "pendulum, simulate eager"):
+        for cls in P.PENDULUM_CLASSES:
+            cases = R.draw(P.pendulum_cases(cls), n["p_eager"])
+            for v in P.EAGER_VARIANTS:
+                for c in cases:
+                    tally.add(f"pendulum ({P.vname(v)}), eager", cls, c, P.run_eager(c, v), c.what)
+    with timed(tally, "pendulum, simulate jit"):
+        for cls in P.PENDULUM_CLASSES:
+            cases = R.draw(P.pendulum_cases(cls), n["p_jit"])
+            for v in P.JIT_VARIANTS:
+                for c in cases:
+                    tally.add(f"pendulum ({P.vname(v)}), jax.jit (throw=True)", cls, c, P.run_jit(c, v), c.what)
+    with timed(tally, "pendulum, jit(vmap(value_and_grad))"):
+        batches = R.draw(st.tuples(*(P.pendulum_cases(c) for c in P.PENDULUM_CLASSES)), n["p_batches"])
+        cases = [c for b in batches for c in b]
+        for v in P.VMAP_VARIANTS:
+            for c, (value, grad) in zip(cases, P.run_batched("motion", cases, v)):
+                tally.add(f"pendulum ({P.vname(v)}), vmap: values", c.cls, c, value, c.what)
+                tally.add(f"pendulum ({P.vname(v)}), vmap: gradients", c.cls, c, grad, c.what)
+    with timed(tally, "pendulum, events"):
+        ev = [c for cls in P.EVENT_CLASSES for c in R.draw(P.event_cases(cls), n["p_event"])]
+        for v in P.EVENT_EAGER_VARIANTS:
+            for c in ev:
+                tally.add(f"pendulum ({P.vname(v)}), event, eager", c.cls, c, P.run_event_eager(c, v), c.what)
+        v = P.EVENT_GRAD_VARIANT
+        for c, (value, grad) in zip(ev, P.run_batched("event", ev, v)):
+            tally.add(f"pendulum ({P.vname(v)}), event, jit(vmap(grad)): times", c.cls, c, value, c.what)
+            tally.add(f"pendulum ({P.vname(v)}), event, jit(vmap(grad)): ∂t/∂θ", c.cls, c, grad, c.what)
+        v = P.EVENT_JACFWD_VARIANT
+        for c, (value, grad) in zip(ev, P.run_batched("event-jacfwd", ev, v)):
+            tally.add(f"pendulum ({P.vname(v)}), event, jit(vmap(jacfwd)): states", c.cls, c, value, c.what)
+            tally.add(f"pendulum ({P.vname(v)}), event, jit(vmap(jacfwd)): ∂t/∂θ", c.cls, c, grad, c.what)
+    with timed(tally, "pendulum, dense output"):
+        dense = P.dense_cases(R.draw(P.pendulum_cases("valid"), n["p_dense"]))
+        v = P.DENSE_EAGER_VARIANT
+        for c in dense:
+            tally.add(f"pendulum ({P.vname(v)}), dense, eager", c.cls, c, P.run_dense_eager(c, v), c.what)
+        v = P.DENSE_GRAD_VARIANT
+        for c, (value, grad) in zip(dense, P.run_batched("dense", dense, v)):
+            tally.add(f"pendulum ({P.vname(v)}), dense, jit(vmap(grad)): values", c.cls, c, value, c.what)
+            tally.add(f"pendulum ({P.vname(v)}), dense, jit(vmap(grad)): gradients", c.cls, c, grad, c.what)
+    with timed(tally, "pendulum, consistent_velocities"):
+        for cls in P.CV_CLASSES:
+            for c in R.draw(P.cv_cases(cls), n["p_cv"]):
+                for t, mech in P.TREATMENTS.items():
+                    for jit in (False, True):
+                        api = f"consistent_velocities (pendulum, {t}), " + ("jax.jit" if jit else "eager")
+                        tally.add(api, f"cv: {cls}", c, P.run_cv(c, mech, P.PendulumModel, jit), c.what)
 
 
 def run_sharpness(tally, n):
@@ -279,6 +335,13 @@ def repro(row, case, outcome) -> str:
             + (f", **{case.kw!r}" if case.kw else "")
             + ")"
         )
+    if case.family == "pendulum":
+        return (
+            f"# {row[0]}: benchmarks/reliability_pendulum.py\n"
+            f"params={ {k: float(v) for k, v in case.params.items()}!r},\n"
+            f"q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r},\n"
+            f"ts={np.asarray(case.ts).tolist()!r}, tt={np.asarray(case.tt).tolist() if case.tt is not None else None!r}"
+        )
     if case.family == "locked" and case.params is not None:
         return (
             f"simulate(LOCKED, params={ {k: float(v) for k, v in case.params.items()}!r},\n"
@@ -286,6 +349,20 @@ def repro(row, case, outcome) -> str:
             f"    ts={np.asarray(case.ts).tolist()!r}, **{case.kw!r})"
         )
     return case.what
+
+
+def _family(api, cls):
+    if "pendulum" in api:
+        return "pendulum (holonomic constraint, events, dense output)"
+    if api.startswith("gradient matrix"):
+        return "gradient matrix (variator)"
+    if api.startswith("CSV"):
+        return "CSV reader"
+    if api == "fit":
+        return "fit (shafts)"
+    if cls.startswith("locked"):
+        return "locked"
+    return "shafts"
 
 
 def write(tally, cases_gm, args, elapsed, undeclared=()):
@@ -337,7 +414,15 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
         "the ratio `R(t) = U + dU tanh(k (t − tsw))`, a third shaft on a spring, the constraint "
         "`R phi1' + a1 phi2' + a2 phi3' + b sin(w t) + nl phi1'² = 0`, kinetic energy "
         "`½ Σ J_i phi_i'² + K phi1' phi2'` and torques `M_i − c_i phi_i'`; every number is a "
-        "traced parameter. The locked family: two coordinates, two constraints (m = s)."
+        "traced parameter. The locked family: two coordinates, two constraints (m = s). The pendulum "
+        "family (`benchmarks/reliability_pendulum.py`): a point mass on a circle in Cartesian coordinates, "
+        "`g = x² + y² − L² = 0` imposed as ġ = 0 or eliminated (y by Newton's method, `dependent=(1,)`), "
+        "each with Lagrange's and Appell's equations, gravity and damping, against the angle equation "
+        "θ'' = −(G/L) sin θ − c θ' integrated by SciPy (DOP853, rtol 1e-12; event times by `solve_ivp(events=...)`, "
+        "dense output by its `dense_output`); terminating events x = xe (times to "
+        "(MOTION_RTOL · scale of x + MOTION_ATOL) / |ẋ| at the crossing, and ∂t/∂(L, c) by `jax.grad` and "
+        "`jax.jacfwd`), dense output at random times, and `consistent_velocities` against the "
+        "hand-written Cartesian projection."
     )
     add("")
     total = collections.Counter()
@@ -360,6 +445,16 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
             "xfail in the test suite with the issue's description)."
         )
     add(f"Unclear errors: {total[R.UNCLEAR_ERROR]}. Bad outcomes in all: {n_bad}.")
+    add("")
+    add("## Counts per family")
+    add("")
+    fam = collections.defaultdict(collections.Counter)
+    for (api, cls), cnt in tally.counts.items():
+        fam[_family(api, cls)].update(cnt)
+    add("| family | cases | " + " | ".join(R.OUTCOMES) + " |")
+    add("|---|---:|" + "---:|" * len(R.OUTCOMES))
+    for f, cnt in fam.items():
+        add(f"| {f} | {sum(cnt.values())} | " + " | ".join(str(cnt[k]) for k in R.OUTCOMES) + " |")
     add("")
     add("## The oracle is sharp")
     add("")
@@ -510,13 +605,16 @@ def main(argv=None):
     started = time.process_time()
     n = (
         dict(eager=8, jit=3, batches=3, lin=4, fit=1, csv=5, bytes=50)
+        | dict(p_eager=3, p_jit=2, p_batches=1, p_event=3, p_dense=3, p_cv=2)
         if args.quick
         else dict(eager=60, jit=15, batches=12, lin=30, fit=3, csv=40, bytes=400)
+        | dict(p_eager=20, p_jit=10, p_batches=5, p_event=20, p_dense=30, p_cv=10)
     )
     tally = Tally()
     run_simulate(tally, n["eager"], n["jit"], n["batches"])
     run_sharpness(tally, n["eager"] // 2)
     run_linearize(tally, n["lin"])
+    run_pendulum(tally, n)
     cases_gm = R.gradient_matrix_cases()
     gm_default = R.run_gradient_matrix(cases_gm)
     gm_eager = R.run_gradient_matrix_eager(cases_gm)

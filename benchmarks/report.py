@@ -152,18 +152,20 @@ def size(R) -> tuple[list, list, dict]:
     fa, st = R["first_answers"], R["steady"]
     ncmp, ngrow = R["ns_compare"], R["ns_growth"]
 
+    default = R.get("default", "appell")  # simulate's default formulation when measured
+
     def row(N, k):
         return fa.get(f"{N} {k}", {})
 
     ratios = {
-        N: C.paired_ratio(row(N, "appell")["cpu"], row(N, "sympy")["cpu"])
+        N: C.paired_ratio(row(N, default)["cpu"], row(N, "sympy")["cpu"])
         for N in ncmp
-        if row(N, "appell").get("cpu") and row(N, "sympy").get("cpu")
+        if row(N, default).get("cpu") and row(N, "sympy").get("cpu")
     }
     worst = max(ratios.items(), key=lambda kv: kv[1]) if ratios else (None, np.nan)
     sp = {N: st[str(N)]["SciPy / jaxnh"] for N in ncmp if str(N) in st}
     low = min(sp.items(), key=lambda kv: kv[1]) if sp else (None, np.nan)
-    errs_j = [row(N, "appell").get("error") for N in ncmp]
+    errs_j = [row(N, default).get("error") for N in ncmp]
     errs_s = [row(N, "sympy").get("error") for N in ncmp]
     targets = [
         [
@@ -181,7 +183,7 @@ def size(R) -> tuple[list, list, dict]:
             met(bool(sp) and low[1] >= 50),
         ],
     ]
-    a16, g16 = row(16, "appell"), row(16, "gradient")
+    a16, g16 = row(16, default), row(16, "gradient")
     if a16.get("cpu"):
         targets.append(
             [
@@ -234,7 +236,7 @@ def size(R) -> tuple[list, list, dict]:
     ]
     body = []
     for N in ncmp:
-        j, s = row(N, "appell"), row(N, "sympy")
+        j, s = row(N, default), row(N, "sympy")
         body.append(
             [
                 N,
@@ -301,7 +303,8 @@ def size(R) -> tuple[list, list, dict]:
                     + (f" — {r_['note'][:120]}" if r_.get("note") else "")
                 )
         body.append(cells)
-    out += table(["N", "appell (default)", "lagrange", "first gradient"], body)
+    labels = [f"{k} (default)" if k == default else k for k in ("appell", "lagrange")]
+    out += table(["N", *labels, "first gradient"], body)
     out += ["Fitted exponents k of t ∝ N^k: " + "; ".join(f"{k} {v['exponent']:.2f}" for k, v in gro.items()) + ".", ""]
     return targets, out, dict(ratios=ratios)
 
@@ -347,7 +350,7 @@ def first_answer(R) -> tuple[list, list]:
 
 def precision(R) -> tuple[list, list]:
     rows = R["rows"]
-    default = R.get("default", "appell")
+    default = "lagrange" if "mechanisms" in R else "appell"  # (results before the default changed: the ball alone)
     other = "appell" if default == "lagrange" else "lagrange"
     mechanisms = R.get("mechanisms", ["ball"])
     targets, out = [], ["## Work–precision: the default formulation against the other", ""]
@@ -372,7 +375,7 @@ def precision(R) -> tuple[list, list]:
             [
                 f"{mech}: default formulation ({default}) / {other}, time at the same error, rtol "
                 f"{R['rtols'][0]:g}…{R['rtols'][-1]:g}",
-                "≤ 1× (no worse at any error)" if default == "appell" else "—",
+                "≤ 1× (no worse at any error)",
                 f"{min(ratios):.2f}×…{max(ratios):.2f}× ({len(ratios)} matched points)" if ratios else "no overlap",
                 "independent reference",
                 "yes" if ratios and max(ratios) <= 1.0 else ("no" if ratios else "—"),
@@ -490,7 +493,8 @@ def figures(results):
         R = results["size"]
         fa = R["first_answers"]
         fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-        for k, label in (("appell", "jaxnh appell"), ("sympy", "SymPy + SciPy")):
+        default = R.get("default", "appell")
+        for k, label in ((default, f"jaxnh {default}"), ("sympy", "SymPy + SciPy")):
             pts = [(N, fa[f"{N} {k}"]["cpu_median"]) for N in R["ns_compare"] if fa.get(f"{N} {k}", {}).get("cpu")]
             if pts:
                 ax[0].plot(*zip(*pts), "o-", label=label)

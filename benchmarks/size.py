@@ -8,8 +8,8 @@
    call against the lambdified NumPy right-hand side in `solve_ivp` and
    against the SymPy equations printed as JAX source in `diffrax.Tsit5`
    ("by hand in JAX"), 2 ≤ N ≤ 8.
-3. Growth: first answers for N = 1 … 32 of `method="appell"` (the default),
-   `"lagrange"` and of a first gradient (`jax.grad` of the final coordinates'
+3. Growth: first answers for N = 1 … 32 of `method="appell"`,
+   `"lagrange"` (the default) and of a first gradient (`jax.grad` of the final coordinates'
    sum with respect to every parameter), with the fitted exponent of
    t ∝ N^k (of the time after the import).
 
@@ -19,7 +19,7 @@ solved by SciPy's DOP853 at rtol 1e-12; a gradient against a central
 difference of that reference along a random direction. A fresh process that
 takes more than `common.MAX_RSS_GB` of memory is stopped and reported.
 
-    python -m benchmarks.size [--quick]
+    python -m benchmarks.size [--quick] [--growth N ...]
 """
 
 from __future__ import annotations
@@ -73,16 +73,19 @@ OUT.update(y=s.y.T, nfev=s.nfev, message=s.message)
 """
 
 
+DEFAULT = "lagrange"  # simulate's default formulation: the one compared with SymPy's pipeline
+
+
 class Case:
     """Everything about one N: initial state, SymPy's right-hand sides, the reference."""
 
-    def __init__(self, N: int, ns: dict):
+    def __init__(self, N: int, ns: dict | None):
         self.N, self.p = N, CH.params(N)
         self.q0, self.qd0 = CH.initial_state(N, self.p)
         self.ts = CH.report_times()
         self.y0 = CH.kane_state(self.q0, self.qd0)
         self.P = np.asarray(CH.param_vector(self.p))
-        if N <= 8:  # SymPy's peers (its derivation grows fast: 5 min of CPU at N = 16)
+        if N <= 8 and ns is not None:  # SymPy's peers (its derivation grows fast: 5 min of CPU at N = 16)
             self.np_rhs, _ = ns["numpy_rhs"](N)
             self.hand = CH.load_source(CH.jax_source(N, ns))
         self.q_ref, self.qd_ref = CH.reference(N, self.p, self.q0, self.qd0, self.ts)
@@ -235,8 +238,27 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="N = 2, 4 compared, growth from N = 1 to 4, one repeat")
     ap.add_argument("--repeats", type=int, default=None, help="fresh processes per target point (default 5, quick 1)")
+    ap.add_argument(
+        "--growth",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="only the first answers of both formulations for these N (no SymPy, no steady solves)",
+    )
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
+    if a.growth:
+        R = a.repeats or 1
+        cases = {N: Case(N, None) for N in a.growth}
+        plan = [(N, k) for N in a.growth for k in ("lagrange", "appell")]
+        fa = first_answers(cases, plan, {nk: R for nk in plan})
+        for key, row in fa.items():
+            C.log(
+                f"[size] {key}: after import {row['after_import_median']} s wall, error {row['error']}, "
+                f"peak {row.get('peak_rss_gb')} GB"
+            )
+        C.save("size_growth", dict(first_answers=fa, repeats=R, seconds=time.perf_counter() - t0))
+        return
     ns_cmp = (2, 4) if a.quick else (2, 3, 4, 5, 6, 7, 8)
     ns_grow = (1, 4) if a.quick else (1, 2, 4, 8, 16, 32)
     big = () if a.quick else (16,)
@@ -247,7 +269,7 @@ def main(argv=None):
     C.log(f"[size] references ready ({time.perf_counter() - t0:.0f} s)")
     repeats = {}
     for N in ns_cmp:
-        repeats[(N, "appell")] = repeats[(N, "sympy")] = R
+        repeats[(N, DEFAULT)] = repeats[(N, "sympy")] = R
     for N in ns_grow:
         for k in ("appell", "lagrange", "gradient"):
             repeats.setdefault((N, k), R if N in big else r_grow)
@@ -267,6 +289,7 @@ def main(argv=None):
             first_answers=fa,
             steady=st,
             growth=growth,
+            default=DEFAULT,
             ns_compare=ns_cmp,
             ns_growth=ns_grow,
             repeats=R,

@@ -243,3 +243,125 @@ def test_fit_right_or_flagged(record):
     results = [(case, R.run_fit(label, over, case.names, rec, qd0))]
     assert results[0][1].kind == R.CLEAR_ERROR, results
     settle(results, "fit")
+
+
+# --- the pendulum family: a holonomic constraint (both treatments), events, dense output ----------
+
+from benchmarks import reliability_pendulum as P  # noqa: E402
+
+
+def test_the_pendulum_reference_matches_the_elliptic_solution():
+    """The angle reference (SciPy, no jaxnh) released from rest, undamped: θ(t) = 2 asin(k sn(K − ω t | k²)),
+    k = sin(θ0/2), ω = √(G/L); its event time for x = 0 is the quarter period K/ω."""
+    import scipy.special
+
+    p = dict(m=1.0, L=1.3, G=9.81, c=0.0, xe=0.0)
+    th0, ts = 0.9, np.linspace(0.0, 3.0, 7)
+    case = P.PCase("valid", p, th0, 0.0, ts)
+    k, om = np.sin(th0 / 2), np.sqrt(9.81 / 1.3)
+    sn = scipy.special.ellipj(scipy.special.ellipk(k**2) - om * ts, k**2)[0]
+    th = 2 * np.arcsin(k * sn)
+    ref, event = case.reference(), case.event_reference
+    assert ref is not None and event is not None, "the reference integration failed"
+    np.testing.assert_allclose(ref[0], np.c_[1.3 * np.sin(th), -1.3 * np.cos(th)], atol=1e-10)
+    te = event[0]
+    assert te is not None and abs(te - scipy.special.ellipk(k**2) / om) < 1e-10
+
+
+def test_the_pendulum_oracle_is_sharp():
+    """A right motion passes, one off by 1e-3 is silent wrong; an event time off by 10 × the allowed
+    error is silent wrong; a success on an invalid input is silent wrong."""
+    case = draw_all(P.pendulum_cases("valid"), 1)[0]
+    ref = case.reference()
+    assert ref is not None, "the reference integration failed"
+    q, qd = ref
+    assert P.judge_motion(case, q, qd, 0, "success").kind == R.RIGHT
+    assert P.judge_motion(case, q * (1 + 1e-3), qd, 0, "success").kind == R.SILENT_WRONG
+    bad = P.dataclasses.replace(case, valid=False)
+    assert P.judge_motion(bad, q, qd, 0, "success").kind == R.SILENT_WRONG
+    ev = draw_all(P.event_cases("event: x crosses a level"), 1)[0]
+    event = ev.event_reference
+    assert event is not None and event[0] is not None
+    te = event[0]
+    assert P.judge_event(ev, te, np.zeros(2), 0, "success").kind == R.RIGHT
+    assert P.judge_event(ev, te * (1 + 1e-3) + 1e-3, np.zeros(2), 0, "success").kind == R.SILENT_WRONG
+    assert P.judge_event(ev, te, np.zeros(2), 3, "failed").kind == R.SILENT_WRONG  # a failure with finite values
+
+
+PENDULUM_RIGHT = ("valid", "tiny amplitude")
+PENDULUM_FAILED = ("q0 off the circle", "qd0 with ġ ≠ 0", "non-finite value", "mass not positive")
+
+
+@pytest.mark.parametrize("cls", P.PENDULUM_CLASSES)
+def test_pendulum_imposed_eagerly(cls):
+    """The holonomic constraint imposed as ġ = 0, Appell's equations, eagerly."""
+    results = [(c, P.run_eager(c, ("imposed", "appell"))) for c in draw_all(P.pendulum_cases(cls), 2)]
+    kinds = {o.kind for _, o in results}
+    if cls in PENDULUM_RIGHT + ("start above the pivot", "swing to or past the horizontal"):
+        assert kinds == {R.RIGHT}, results
+    if cls in PENDULUM_FAILED:
+        assert kinds == {R.FAILURE}, results
+    settle(results, f"pendulum, imposed, {cls}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["lagrange", "appell"])
+def test_pendulum_eliminated_eagerly_and_under_jit(method):
+    """y eliminated by Newton's method: the other branch is refused (holonomic_branch), a swing
+    past the horizontal is right or a failure, never a motion on the wrong branch."""
+    v = ("eliminated", method)
+    results = []
+    for cls in P.PENDULUM_CLASSES:
+        for c in draw_all(P.pendulum_cases(cls), 2):
+            results += [(c, P.run_eager(c, v)), (c, P.run_jit(c, v))]
+            if cls == "start above the pivot":
+                assert results[-1][1].kind == R.FAILURE and results[-2][1].kind == R.FAILURE
+    settle(results, f"pendulum, eliminated, {method}")
+
+
+@pytest.mark.slow
+def test_pendulum_under_vmap_and_grad():
+    """One batch per draw holds a case of every pendulum class; values and ∂/∂(L, c) judged per member."""
+    batches = draw_all(st.tuples(*(P.pendulum_cases(c) for c in P.PENDULUM_CLASSES)), 1)
+    cases = [c for b in batches for c in b]
+    results = []
+    for c, (value, grad) in zip(cases, P.run_batched("motion", cases, ("eliminated", "lagrange"))):
+        results += [(c, value), (c, grad)]
+    assert sum(o.kind == R.RIGHT for _, o in results) >= 4
+    settle(results, "pendulum, jit(vmap(value_and_grad))")
+
+
+@pytest.mark.slow
+def test_pendulum_events():
+    """Terminating events x = xe: the time eagerly, ∂t/∂(L, c) by jit(vmap(grad)) and jit(vmap(jacfwd))
+    (adjoint=diffrax.ForwardMode()), against SciPy's event location and its central differences."""
+    cases = [c for cls in P.EVENT_CLASSES for c in draw_all(P.event_cases(cls), 2)]
+    results = [(c, P.run_event_eager(c, ("imposed", "appell"))) for c in cases]
+    for kind, v in (("event", P.EVENT_GRAD_VARIANT), ("event-jacfwd", P.EVENT_JACFWD_VARIANT)):
+        for c, (value, grad) in zip(cases, P.run_batched(kind, cases, v)):
+            results += [(c, value), (c, grad)]
+    assert {o.kind for _, o in results} == {R.RIGHT}, results
+    settle(results, "pendulum, events")
+
+
+@pytest.mark.slow
+def test_pendulum_dense_output():
+    """sol.evaluate at random times, eagerly and under jit(vmap(value_and_grad)), against SciPy's dense output."""
+    cases = P.dense_cases(draw_all(P.pendulum_cases("valid"), 2))
+    results = [(c, P.run_dense_eager(c, P.DENSE_EAGER_VARIANT)) for c in cases]
+    for c, (value, grad) in zip(cases, P.run_batched("dense", cases, P.DENSE_GRAD_VARIANT)):
+        results += [(c, value), (c, grad)]
+    assert {o.kind for _, o in results} == {R.RIGHT}, results
+    settle(results, "pendulum, dense output")
+
+
+@pytest.mark.parametrize("cls", P.CV_CLASSES)
+def test_consistent_velocities_on_the_pendulum(cls):
+    """The nearest velocity on ġ = 0 (kinetic-energy metric) against the hand-written projection."""
+    results = []
+    for c in draw_all(P.cv_cases(cls), 2):
+        for jit in (False, True):
+            results.append((c, P.run_cv(c, P.TREATMENTS["imposed"], P.PendulumModel, jit)))
+    if c.valid:
+        assert {o.kind for _, o in results} == {R.RIGHT}, results
+    settle(results, f"consistent_velocities, {cls}")

@@ -52,7 +52,7 @@ def as_formulation(method, independent=None) -> Formulation:
     if independent is not None and (isinstance(method, Lagrange) or (isinstance(method, str) and method == "lagrange")):
         raise ValueError(
             f"independent={tuple(independent)}: fixed independent velocities belong to method='appell' (or "
-            "'substituted'); Lagrange's equations integrate all velocities: pass method='appell' "
+            "'substituted'); Lagrange's equations, the default, integrate all velocities: pass method='appell' "
             "with them, or leave independent out"
         )
     if isinstance(method, Formulation):

@@ -77,7 +77,7 @@ def ode(
     q0: ArrayInput,
     qd0: ArrayInput,
     t0: ArrayLike = 0.0,
-    method: str | Formulation = "appell",
+    method: str | Formulation = "lagrange",
     *,
     independent: Optional[Iterable[int]] = None,
 ) -> ODE:

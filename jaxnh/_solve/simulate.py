@@ -82,7 +82,7 @@ stages (benchmarks/RESULTS.md).
 
 
 def default_solver(
-    rtol: float, operations: Optional[int] = None, method: str = "appell"
+    rtol: float, operations: Optional[int] = None, method: str = "lagrange"
 ) -> diffrax.AbstractSolver[Any]:
     """The explicit solver used when `simulate(solver=None)`.
 
@@ -193,7 +193,7 @@ def simulate(
     q0: ArrayInput,
     qd0: ArrayInput,
     ts: ArrayInput,
-    method: str | Formulation = "appell",
+    method: str | Formulation = "lagrange",
     solver: Optional[diffrax.AbstractSolver[Any]] = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
@@ -228,17 +228,17 @@ def simulate(
             relative to the velocity scale (else `STATUS.inconsistent_velocities`).
         ts: report times (n,), strictly increasing, s; ts[0] is the start and
             ts[-1] the end.
-        method: a formulation object — `jaxnh.Appell()` (the default; state
-            (q, independent velocities), the constraints hold exactly),
-            `jaxnh.Lagrange(baumgarte=..., projection=...)` (multipliers,
-            state (q, qd)), `jaxnh.Substituted()` (the paper's wrong method,
-            for comparison) — or its name "appell", "lagrange", "substituted".
-            At the same error Lagrange's form took 0.73–0.89× Appell's time
-            on a rolling ball, 0.79–0.83× on a car with four trailers and
-            1.04–1.15× on the variator (`python -m benchmarks.precision`), but
-            its first call grows much faster with the size of the mechanism
-            (a car with 8 trailers: 67 s against 18 s; with 16, more than
-            6 GB of memory), so Appell's stays the default.
+        method: a formulation object — `jaxnh.Lagrange(baumgarte=...,
+            projection=...)` (the default `Lagrange()`; multipliers, state
+            (q, qd)), `jaxnh.Appell()` (state (q, independent velocities),
+            the constraints hold exactly), `jaxnh.Substituted()` (the paper's
+            wrong method, for comparison) — or its name "lagrange", "appell",
+            "substituted". Lagrange's is the default: at the same error it
+            took 0.73–0.89× Appell's time on a rolling ball, 0.79–0.83× on a
+            car with four trailers and 1.04–1.15× on the variator (`python -m
+            benchmarks.precision`), and its first call is the shorter one on
+            large mechanisms (a car with 8 trailers: 28 s against 36 s; with
+            16: 29 s against 47 s, fresh processes on a busy 2-core machine).
         solver: a diffrax solver; default `default_solver(rtol, size of the
             vector field, method)`.
         rtol, atol: relative and absolute tolerances of the default PID step

@@ -248,7 +248,7 @@ def experiment(
     noise: Optional[NoiseSpec] = None,
     q0: Optional[ArrayInput] = None,
     qd0: Optional[ArrayInput] = None,
-    method: str = "appell",
+    method: str = "lagrange",
     solver: Optional[diffrax.AbstractSolver[Any]] = None,
     rtol: float = 1e-8,
     atol: float = 1e-10,
