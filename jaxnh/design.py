@@ -2,10 +2,9 @@
 
 The public names of `jaxnh.identify.design`; see there for the implementation."""
 
+from jaxnh.identify import design as _implementation
 from jaxnh.identify.design import *  # noqa: F403 (the public names of one implementation module)
 
 
-# written out, as type checkers need a literal list (its names come from the star import: hence
-# F405 off); tests/test_layers.py checks it equals the implementation's
-# ruff: noqa: F405
-__all__ = ["Chebyshev", "Bounded", "optimize", "multistart", "fd_gradient"]
+__all__: list[str] = []
+__all__ += _implementation.__all__  # (this form, not `__all__ = ...`, is one that type checkers follow)

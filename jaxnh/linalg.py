@@ -2,22 +2,9 @@
 
 The public names of `jaxnh._base.linalg`; see there for the implementation."""
 
+from jaxnh._base import linalg as _implementation
 from jaxnh._base.linalg import *  # noqa: F403 (the public names of one implementation module)
 
 
-# written out, as type checkers need a literal list (its names come from the star import: hence
-# F405 off); tests/test_layers.py checks it equals the implementation's
-# ruff: noqa: F405
-__all__ = [
-    "UNROLL_MAX",
-    "mm",
-    "cholesky",
-    "solve_lower",
-    "solve_upper_t",
-    "solve_spd",
-    "pivot_rtol",
-    "solve_psd_min_norm",
-    "solve_square",
-    "value_and_jacfwd",
-    "pick",
-]
+__all__: list[str] = []
+__all__ += _implementation.__all__  # (this form, not `__all__ = ...`, is one that type checkers follow)

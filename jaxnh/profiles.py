@@ -2,21 +2,9 @@
 
 The public names of `jaxnh._model.profiles`; see there for the implementation."""
 
+from jaxnh._model import profiles as _implementation
 from jaxnh._model.profiles import *  # noqa: F403 (the public names of one implementation module)
 
 
-# written out, as type checkers need a literal list (its names come from the star import: hence
-# F405 off); tests/test_layers.py checks it equals the implementation's
-# ruff: noqa: F405
-__all__ = [
-    "Profile",
-    "Constant",
-    "Fourier",
-    "SmoothStep",
-    "PiecewiseLinear",
-    "CubicSpline",
-    "Sampled",
-    "Positive",
-    "Bounded",
-    "trainable",
-]
+__all__: list[str] = []
+__all__ += _implementation.__all__  # (this form, not `__all__ = ...`, is one that type checkers follow)
