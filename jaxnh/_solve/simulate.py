@@ -237,8 +237,8 @@ def simulate(
             took 0.73–0.89× Appell's time on a rolling ball, 0.79–0.83× on a
             car with four trailers and 1.04–1.15× on the variator (`python -m
             benchmarks.precision`), and its first call is the shorter one on
-            large mechanisms (a car with 8 trailers: 28 s against 36 s; with
-            16: 29 s against 47 s, fresh processes on a busy 2-core machine).
+            large mechanisms (a car with 8 trailers: 28 s against 42 s; with
+            16: 33 s against 48 s; `python -m benchmarks.size --growth 8 16`).
         solver: a diffrax solver; default `default_solver(rtol, size of the
             vector field, method)`.
         rtol, atol: relative and absolute tolerances of the default PID step
