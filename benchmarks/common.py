@@ -16,6 +16,7 @@ back: every core, the original XLA flags, empty cache folders.
 
 from __future__ import annotations
 
+import ast
 import datetime
 import hashlib
 import importlib.util
@@ -195,11 +196,35 @@ _KEEP: list = []
 # --------------------------------------------------------------------------- the stamp
 
 
+def _executable(source: str) -> str:
+    """The code of a Python module without what cannot change what it computes: comments and
+    layout (gone in the syntax tree), docstrings, and the annotations of function arguments and
+    returns (strings under `from __future__ import annotations`). Annotated assignments keep theirs:
+    a dataclass or equinox Module makes its fields from them."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
+                if isinstance(body[0].value.value, str):
+                    node.body = body[1:] or [ast.Pass()]
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            node.returns = None
+            a = node.args
+            for arg in [*a.posonlyargs, *a.args, *a.kwonlyargs, a.vararg, a.kwarg]:
+                if arg is not None:
+                    arg.annotation = None
+    return ast.dump(tree)
+
+
 def source_digest(root: pathlib.Path = ROOT) -> str:
-    """SHA-256 (first 16 hex digits) of every jaxnh/**/*.py file's path and contents."""
+    """SHA-256 (first 16 hex digits) of the executable code of every jaxnh/**/*.py file (with its
+    path): an edit to a comment, a docstring or a signature's type hints leaves the benchmarks'
+    records current, any other edit marks them stale."""
     h = hashlib.sha256()
     for f in sorted((root / "jaxnh").rglob("*.py")):
-        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+        code = _executable(f.read_text(encoding="utf-8"))
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + code.encode() + b"\0")
     return h.hexdigest()[:16]
 
 

@@ -300,6 +300,12 @@ def test_backsolve_adjoint_with_step_maps_is_refused_and_plain_lagrange_differen
         nh.simulate(
             MECH, params(), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, "appell", adjoint=diffrax.BacksolveAdjoint()
         )
+    # Baumgarte's damping of the drift turns into growth e^(α Δt) when the state is integrated back
+    with pytest.raises(ValueError, match=r"BacksolveAdjoint\(\) cannot differentiate stabilization='baumgarte'"):
+        nh.simulate(
+            MECH, params(), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, stabilization="baumgarte",
+            adjoint=diffrax.BacksolveAdjoint(),
+        )  # fmt: skip
 
     def final(J2):
         sol = nh.simulate(MECH, params(J2=J2), jnp.zeros(2), jnp.array([2.0, 2.0]), TS, method="lagrange",

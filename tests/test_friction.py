@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -524,6 +525,10 @@ def test_friction_values_are_checked():
         nh.simulate(mech, CYL, jnp.zeros(2), jnp.zeros(2), TS)
     with pytest.raises(TypeError, match="params"):
         jax.jit(lambda mu: nh.FrictionContact(0, 1.0, mu, 0.1))(0.5)
+    # a change of mode is an event located on the solver's interpolant: Kvaerno5's is a third-order
+    # Hermite between long implicit steps, refused (before anything is compiled) with the fix named
+    with pytest.raises(ValueError, match=r"solver=Kvaerno5\(\).*Kvaerno3"):
+        _cylinder(0.3, "lagrange", solver=diffrax.Kvaerno5())
 
 
 def test_no_contacts_no_friction_fields():

@@ -82,6 +82,7 @@ from jaxnh._solve.diagnose import acceleration_energy_agrees
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.sensitivity import diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import Solution
+from jaxnh._solve.stepping import coarse_interpolant
 
 
 __all__ = [
@@ -1086,6 +1087,13 @@ def simulate_friction(
     f = _Friction(mech, s, m, "lagrange" if isinstance(form, Lagrange) else "appell", independent)
     if solver is None:  # (simulate passes its default solver)
         solver = diffrax.Tsit5()
+    if coarse_interpolant(solver) and not isinstance(stepsize_controller, diffrax.ConstantStepSize):
+        # (as for simulate's events: a transition located on a third-order interpolant between long steps)
+        raise ValueError(
+            f"solver={type(solver).__name__}(): with friction contacts each change of mode is an event, located "
+            "on the solver's interpolant, and this solver's is diffrax's third-order Hermite between long implicit "
+            "steps, far less accurate than the requested tolerance. Use diffrax.Kvaerno3() or an explicit solver"
+        )
     traced = is_traced(params, q0, qd0, ts)
     sol = _run(
         f,

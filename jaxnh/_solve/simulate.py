@@ -38,6 +38,7 @@ from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
 from jaxnh._solve.rk import UnrolledTsit5
 from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import DenseMotion, Expansion, Solution
+from jaxnh._solve.stepping import coarse_interpolant
 
 
 __all__ = [
@@ -344,7 +345,7 @@ def simulate(
     declared = declared_breakpoints(params, q0.dtype)
     if declared is not None:
         step_ts = declared if step_ts is None else jnp.sort(jnp.concatenate([_as_times(step_ts, q0.dtype), declared]))
-    if _coarse_interpolant(solver) and (
+    if coarse_interpolant(solver) and (
         stepsize_controller is None or isinstance(stepsize_controller, diffrax.PIDController)
     ):
         # e.g. Kvaerno5: a fifth-order method whose dense output is a third-order Hermite
@@ -473,21 +474,6 @@ def _check_cast_times(given, ts) -> None:
             f"{ts.dtype} the times are no longer strictly increasing (some are closer than its resolution). "
             f"Pass q0 and qd0 in {a.dtype}, or report times that {ts.dtype} can tell apart."
         )
-
-
-def _coarse_interpolant(solver) -> bool:
-    """Whether `solver` reports between its steps by an interpolant of lower order than its own
-    (diffrax's third-order Hermite for a method of order > 3: the implicit Kvaerno4/5)."""
-    if solver is None:
-        return False
-    try:
-        order = solver.order(None)
-    except Exception:  # a solver whose order depends on its terms: no claim made
-        return False
-    interp = solver.interpolation_cls
-    interp = getattr(interp, "__self__", interp)  # diffrax gives a classmethod constructor for some
-    hermite = isinstance(interp, type) and issubclass(interp, diffrax.ThirdOrderHermitePolynomialInterpolation)
-    return hermite and order > 3
 
 
 @functools.lru_cache(maxsize=64)
@@ -766,6 +752,17 @@ def _run_traced(
             "around every step (Appell's choice of independent velocities, Lagrange's projection): use the "
             "default adjoint or diffrax.RecursiveCheckpointAdjoint(), or method='lagrange' without projection"
         )
+    if isinstance(adjoint, diffrax.BacksolveAdjoint) and isinstance(form, Lagrange) and form.baumgarte is not None:
+        # the backsolve adjoint rebuilds the state by integrating backward in time, where Baumgarte's
+        # damping of the constraint drift (rate α) becomes growth by e^(α Δt) between saved states:
+        # at α = 20/s over 2 s a gradient came out 4e9 instead of -82 (5 /s: 4e-6 off), with success
+        raise ValueError(
+            "adjoint=diffrax.BacksolveAdjoint() cannot differentiate stabilization='baumgarte' "
+            "(Lagrange(baumgarte=α)): "
+            "it rebuilds the state by integrating backward in time, where the stabilisation's damping of the "
+            "constraint drift becomes growth by e^(α·Δt) between saved states, and the gradient loses every digit. "
+            "Use the default adjoint or diffrax.RecursiveCheckpointAdjoint(), or stabilization=None"
+        )
     kw = dict(t0=t0r, t1=t_end, max_steps=max_steps, dt0=dt0, error_mask=form.error_mask())
     event_mask = interpolation = None
     if isinstance(adjoint, ForwardSensitivity):
@@ -776,6 +773,18 @@ def _run_traced(
             )
         out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller, **kw)
     else:
+        adaptive = not isinstance(controller, diffrax.ConstantStepSize)
+        if event is not None and not boolean and coarse_interpolant(solver) and adaptive:
+            # the event is located on the solver's interpolant and the state at it is read from it: for
+            # Kvaerno4/5 a third-order Hermite between long implicit steps (qd at the event 50 rtol off
+            # at rtol 1e-8, its derivative beyond the tolerance) while the steps themselves are accurate
+            raise ValueError(
+                f"event: with solver={type(solver).__name__}() and an adaptive step size the event's time and the "
+                "state there are read from diffrax's third-order Hermite interpolant between the method's long "
+                "implicit steps, far less accurate than the requested tolerance. Use diffrax.Kvaerno3() (an "
+                "interpolant of its own order) or an explicit solver, or a constant step size (dt0=..., "
+                "stepsize_controller=diffrax.ConstantStepSize())"
+            )
         sol = diffrax_solve(
             field,
             solver,

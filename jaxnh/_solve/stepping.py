@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from jaxnh._equations.step_maps import REJECT_ERROR, StepMaps
 
 
-__all__ = ["MappedSolver", "SensitivityMaps"]
+__all__ = ["coarse_interpolant", "MappedSolver", "SensitivityMaps"]
 
 
 class SensitivityMaps(StepMaps):
@@ -160,3 +160,18 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
+
+
+def coarse_interpolant(solver) -> bool:
+    """Whether `solver` reports between its steps by an interpolant of lower order than its own
+    (diffrax's third-order Hermite for a method of order > 3: the implicit Kvaerno4/5)."""
+    if solver is None:
+        return False
+    try:
+        order = solver.order(None)
+    except Exception:  # a solver whose order depends on its terms: no claim made
+        return False
+    interp = solver.interpolation_cls
+    interp = getattr(interp, "__self__", interp)  # diffrax gives a classmethod constructor for some
+    hermite = isinstance(interp, type) and issubclass(interp, diffrax.ThirdOrderHermitePolynomialInterpolation)
+    return hermite and order > 3

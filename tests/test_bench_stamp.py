@@ -1,0 +1,48 @@
+"""The benchmarks' staleness stamp: `benchmarks.common.source_digest` hashes the executable code of
+jaxnh/ (its syntax tree without docstrings and signature annotations), so that a record measured
+on today's code stays current through edits to comments, docstrings and type hints, and goes
+stale with any other edit (the docs' performance page and `make bench-stale` rely on it)."""
+
+from __future__ import annotations
+
+from benchmarks.common import _executable, source_digest
+
+
+BASE = '''
+import dataclasses
+
+@dataclasses.dataclass
+class Field:
+    """A field."""
+    rate: float = 1.0
+
+def step(x, h):
+    return x + h * x
+'''
+
+
+def test_documentation_and_signature_hints_leave_the_digest():
+    edited = '''
+import dataclasses
+
+@dataclasses.dataclass
+class Field:
+    """A field, in 1/s (reworded)."""
+    rate: float = 1.0  # a comment
+
+def step(x: float, h: float) -> float:
+    """One explicit Euler step."""
+    return x + h * x
+'''
+    assert _executable(edited) == _executable(BASE)
+
+
+def test_code_and_field_annotations_change_the_digest():
+    assert _executable(BASE.replace("h * x", "h * x * x")) != _executable(BASE)
+    # a dataclass makes its fields from annotated assignments: their annotations are code
+    assert _executable(BASE.replace("rate: float = 1.0", "rate = 1.0")) != _executable(BASE)
+
+
+def test_the_digest_of_the_package_is_a_stable_hex_stamp():
+    d = source_digest()
+    assert len(d) == 16 and int(d, 16) >= 0 and d == source_digest()
