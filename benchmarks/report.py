@@ -83,7 +83,8 @@ def stamp(results: dict) -> list:
         + ", ".join(f"{k} {v}" for k, v in m["versions"].items())
         + ".",
         "> `python -m benchmarks.run_all --stale` (or `benchmarks.common.stale()`) says whether jaxnh/ has changed "
-        "since: the digest is a hash of every jaxnh/**/*.py.",
+        "since: the digest is a hash of the executable code of every jaxnh/**/*.py (comments, docstrings and "
+        "signature hints left out).",
     ]
     if measured != m["digest"]:
         lines.append("> **Warning:** jaxnh/ changed while the studies ran or since: this record is stale; rerun.")

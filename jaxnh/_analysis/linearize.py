@@ -102,7 +102,7 @@ class Linearization(eqx.Module):
     coordinates: tuple = eqx.field(static=True)
     speeds: Optional[tuple] = eqx.field(static=True)
 
-    def eigenvalues(self):
+    def eigenvalues(self) -> jax.Array:
         """Eigenvalues of A (complex, unsorted), 1/s."""
         return jnp.linalg.eigvals(self.A)
 

@@ -40,7 +40,7 @@ __all__ = [
 UNROLL_MAX = 8
 
 
-def mm(a, b):
+def mm(a: Any, b: Any) -> Any:
     """Matrix product for small matrices/vectors as a fusible multiply-and-sum.
 
     XLA on CPU turns `a @ b` into a library call whose fixed cost dominates
@@ -109,7 +109,7 @@ def solve_spd(M: Float[Array, "s s"], b: Float[Array, " s *k"]) -> Float[Array, 
     return solve_upper_t(L, solve_lower(L, b))
 
 
-def pivot_rtol(dtype) -> float:
+def pivot_rtol(dtype: jax.typing.DTypeLike) -> float:
     """Relative pivot below which a constraint counts as redundant."""
     return float(1e4 * jnp.finfo(dtype).eps)
 
@@ -254,7 +254,7 @@ def solve_square(A: Float[Array, "n n"], b: Float[Array, " n *k"]) -> Float[Arra
     return jnp.stack(x)
 
 
-def value_and_jacfwd(f, x):
+def value_and_jacfwd(f: Any, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """f(x) and its Jacobian ∂f/∂x (shape `f(x).shape + (n,)`) for a vector x (n,), by forward mode
     in one pass: a `jvp` batched over the n unit tangents, whose primal is not batched and so is
     traced and evaluated once (`jax.jacfwd` drops it, so a caller needing both would trace f
@@ -264,6 +264,6 @@ def value_and_jacfwd(f, x):
     return jac(jnp.eye(x.shape[0], dtype=x.dtype))
 
 
-def pick(x, indices):
+def pick(x: jax.Array, indices: tuple[int, ...] | None) -> jax.Array:
     """x[indices] for a static tuple of indices, without a gather."""
     return jnp.stack([x[i] for i in indices]) if indices else x[:0]

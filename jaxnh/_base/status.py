@@ -152,7 +152,7 @@ MAX_STEPS_ADVICE = (
 class SimulationError(RuntimeError):
     """A failed simulation with `throw=True`; `.status` holds the `STATUS` item."""
 
-    def __init__(self, message: str, status=None):
+    def __init__(self, message: str, status: STATUS | None = None):
         super().__init__(message)
         self.status = status
 

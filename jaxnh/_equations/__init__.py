@@ -41,7 +41,7 @@ __all__ = [
 ]
 
 
-def as_formulation(method, independent=None) -> Formulation:
+def as_formulation(method: str | Formulation, independent: Sequence[int] | None = None) -> Formulation:
     """An unbound formulation object from a method name or object.
 
     `"appell"`, `"lagrange"`, `"substituted"` are aliases of `Appell()`,
@@ -58,7 +58,7 @@ def as_formulation(method, independent=None) -> Formulation:
     if isinstance(method, Formulation):
         if independent is not None and isinstance(method, Appell):
             method = eqx.tree_at(lambda f: f.independent, method, tuple(independent), is_leaf=lambda x: x is None)
-        return method
+        return method  # pyright: ignore[reportReturnType]
     if method not in METHODS:
         raise ValueError(
             f"method must be one of {METHODS} or a formulation object such as jaxnh.Appell() or "
@@ -70,7 +70,15 @@ def as_formulation(method, independent=None) -> Formulation:
     return Appell(independent=ind) if method == "appell" else Substituted(independent=ind)
 
 
-def formulation(mech: Mechanism, method, q, qd, t, params, independent=None) -> Formulation:
+def formulation(
+    mech: Mechanism,
+    method: str | Formulation,
+    q: jax.typing.ArrayLike,
+    qd: jax.typing.ArrayLike,
+    t: jax.typing.ArrayLike,
+    params: PyTree,
+    independent: Sequence[int] | None = None,
+) -> Formulation:
     """The formulation `method` (a name or an object) bound to `mech`, shapes checked at trace time.
 
     `q`, `qd`, `t`, `params` are a sample state (only their shapes and dtypes are used).

@@ -78,14 +78,14 @@ class Appell(Formulation):
 
     name = "appell"
 
-    def bind(self, mech, s, m):
+    def bind(self, mech: eqx.Module, s: int, m: int) -> Appell:
         if m >= s:
             raise ValueError(
                 f"method={self.name!r}: the mechanism has m={m} constraints for s={s} coordinates: no independent "
                 "velocity is left for Appell's equations, or some constraints are linearly dependent (which they "
                 "cannot use either); use method='lagrange'"
             )
-        ind = resolve_independent(mech, self.independent, s, m)
+        ind = resolve_independent(mech, self.independent, s, m)  # pyright: ignore[reportArgumentType]
         return dataclasses.replace(self, mech=mech, s=s, m=m, independent=ind)
 
     @property
@@ -97,29 +97,29 @@ class Appell(Formulation):
         """Whether the partition is data carried in the state."""
         return self.independent is None and self.m > 0
 
-    def parts(self, y):
+    def parts(self, y: jax.Array) -> tuple[jax.Array, jax.Array, Optional[jax.Array]]:
         """(q (s,), v (k,), partition code (m,) or None) of a state y = [q, v, dependent indices]."""
         s, k = self.s, self.s - self.m
         return y[:s], y[s : s + k], (y[s + k :] if self.traced else None)
 
-    def partition(self, y):
+    def partition(self, y: Optional[jax.Array]) -> tuple | jax.Array:
         """The partition in use for the state y."""
         if not self.traced:
             return self.independent if self.independent is not None else tuple(range(self.s))
-        return partition_from_dependent(jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32), self.s)
+        return partition_from_dependent(jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32), self.s)  # pyright: ignore[reportOptionalSubscript]
 
-    def state(self, q, qd, t, params):
+    def state(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         if not self.traced:
             return jnp.concatenate([q, self.split.independent_of(qd, self.partition(None))])
         perm, _ = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
         k = self.s - self.m
         return jnp.concatenate([q, select(qd, perm, k)[0], perm[k:].astype(q.dtype)])
 
-    def unpack(self, y, t, params):
+    def unpack(self, y: jax.Array, t: jax.typing.ArrayLike, params: object) -> tuple[jax.Array, jax.Array]:
         q, v, _ = self.parts(y)
         return q, self.split.velocities(q, v, t, params, self.partition(y))
 
-    def error_mask(self):
+    def error_mask(self) -> Optional[tuple[float, ...]]:
         n = self.s + self.s - self.m
         return (1.0,) * n + (0.0,) * self.m if self.traced else None
 
@@ -143,26 +143,28 @@ class Appell(Formulation):
             return self.partition(None)
         return best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)[0]
 
-    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+    def accelerations(
+        self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object, multipliers: bool = False
+    ) -> tuple[jax.Array, Optional[jax.Array]]:
         part = self._state_partition(q, qd, t, params)
         v = self.split.independent_of(qd, part)
         qd, qdd, _ = self._independent_accelerations(q, v, t, params, part)
         lam = multipliers_from_accelerations(self.bound_mech, q, qd, qdd, t, params) if multipliers else None
         return qdd, lam
 
-    def vector_field(self, t, y, params):
+    def vector_field(self, t: jax.typing.ArrayLike, y: jax.Array, params: object) -> jax.Array:
         q, v, code = self.parts(y)
         qd, _, vd = self._independent_accelerations(q, v, t, params, self.partition(y))
         return jnp.concatenate([qd, vd] + ([jnp.zeros_like(code)] if code is not None else [])).astype(y.dtype)
 
-    def step_maps(self):
+    def step_maps(self) -> Optional[StepMaps]:
         if self.m == 0:
             return None
         return _Partitioning(self.traced and self.repartition)
 
-    def check(self, q, qd, t, params):
+    def check(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> tuple[jax.Array, STATUS]:
         if self.m == 0:
-            return jnp.asarray(True), STATUS.successful
+            return jnp.asarray(True), STATUS.successful  # pyright: ignore[reportReturnType]
         tiny = 1e3 * jnp.finfo(q.dtype).eps
         if self.traced:
             _, vol = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)

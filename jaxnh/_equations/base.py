@@ -53,7 +53,7 @@ class Formulation(eqx.Module):
     has_multipliers = True
     name = "formulation"
 
-    def bind(self, mech: Mechanism, s: int, m: int):
+    def bind(self, mech: Mechanism, s: int, m: int) -> Formulation:
         """This formulation for `mech` with s coordinates and m constraints."""
         return dataclasses.replace(self, mech=mech, s=s, m=m)
 
@@ -65,21 +65,23 @@ class Formulation(eqx.Module):
         return self.mech
 
     @abc.abstractmethod
-    def state(self, q, qd, t, params) -> Any:
+    def state(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: Any) -> Any:
         """Integrated state y from coordinates q (s,) and velocities qd (s,): one flat
         vector (an integrator's stages and error norm then cost one operation each, where a
         tuple of parts costs one per part)."""
 
     @abc.abstractmethod
-    def unpack(self, y, t, params) -> tuple[jax.Array, jax.Array]:
+    def unpack(self, y: jax.Array, t: jax.typing.ArrayLike, params: Any) -> tuple[jax.Array, jax.Array]:
         """Coordinates q (s,) and all velocities qd (s,) from the state y."""
 
     @abc.abstractmethod
-    def accelerations(self, q, qd, t, params, multipliers: bool = False) -> tuple[jax.Array, Optional[jax.Array]]:
+    def accelerations(
+        self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: Any, multipliers: bool = False
+    ) -> tuple[jax.Array, Optional[jax.Array]]:
         """Accelerations qdd (s,) and, if asked, multipliers λ (m,), else None."""
 
     @abc.abstractmethod
-    def vector_field(self, t, y, params) -> Any:
+    def vector_field(self, t: jax.typing.ArrayLike, y: jax.Array, params: Any) -> Any:
         """dy/dt for the integrated state y."""
 
     def error_mask(self) -> Optional[tuple[float, ...]]:
@@ -91,16 +93,20 @@ class Formulation(eqx.Module):
         """A `jaxnh.StepMaps` applied around every step, or None."""
         return None
 
-    def check(self, q, qd, t, params) -> tuple[jax.Array, diffrax.RESULTS]:
+    def check(
+        self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: Any
+    ) -> tuple[jax.Array, diffrax.RESULTS]:
         """(ok, STATUS) of formulation-specific checks of an initial state (in the graph)."""
         return jnp.asarray(True), STATUS.successful
 
-    def describe_failure(self, status) -> Optional[str]:
+    def describe_failure(self, status: STATUS) -> Optional[str]:
         """Extra words for a failure status specific to this formulation."""
         return None
 
 
-def multipliers_from_accelerations(mech, q, qd, qdd, t, params):
+def multipliers_from_accelerations(
+    mech: Mechanism, q: jax.Array, qd: jax.Array, qdd: jax.Array, t: jax.typing.ArrayLike, params: Any
+) -> jax.Array:
     """Multipliers λ with `M qdd + h − Q = Aᵀ λ` (least squares, minimum norm).
 
     λ_k is the generalized constraint force of constraint k divided by

@@ -55,17 +55,19 @@ class Lagrange(Formulation):
 
     name = "lagrange"
 
-    def state(self, q, qd, t, params):
+    def state(self, q: jnp.ndarray, qd: jnp.ndarray, t: Any, params: Any) -> jnp.ndarray:
         return jnp.concatenate([q, qd])
 
-    def unpack(self, y, t, params):
+    def unpack(self, y: jnp.ndarray, t: Any, params: Any) -> tuple[jnp.ndarray, jnp.ndarray]:
         q, qd = y[: self.s], y[self.s :]
         if self.projection and self.m:
             # reports between steps come from the dense output, which is not projected
             return q, project_velocities(self.bound_mech, q, qd, t, params)
         return q, qd
 
-    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+    def accelerations(
+        self, q: jnp.ndarray, qd: jnp.ndarray, t: Any, params: Any, multipliers: bool = False
+    ) -> tuple[jnp.ndarray, jnp.ndarray | None]:
         mech = self.bound_mech
         M, h = mass_and_velocity_terms(mech, q, qd, t, params)
         L = cholesky(M)
@@ -81,12 +83,12 @@ class Lagrange(Formulation):
         qdd = solve_upper_t(L, u + mm(W, lam))
         return qdd, (lam if multipliers else None)
 
-    def vector_field(self, t, y, params):
+    def vector_field(self, t: Any, y: jnp.ndarray, params: Any) -> jnp.ndarray:
         q, qd = y[: self.s], y[self.s :]
         qdd, _ = self.accelerations(q, qd, t, params)
         return jnp.concatenate([qd, qdd]).astype(y.dtype)
 
-    def step_maps(self):
+    def step_maps(self) -> StepMaps | None:
         return _Projection() if self.projection and self.m else None
 
 

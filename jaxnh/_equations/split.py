@@ -292,11 +292,13 @@ class VelocitySplit(eqx.Module):
         """Number of independent velocities (degrees of freedom), s − m."""
         return self.s - self.m
 
-    def independent_of(self, qd, part: Partition):
+    def independent_of(self, qd: jax.Array, part: Partition) -> jax.Array:
         """The independent velocities v (k,) picked out of qd (s,)."""
         return select(qd, part, self.k)[0]
 
-    def velocities(self, q, v, t, params, part: Partition):
+    def velocities(
+        self, q: jax.Array, v: jax.Array, t: jax.typing.ArrayLike, params: PyTree, part: Partition
+    ) -> jax.Array:
         """All velocities qd (s,) satisfying the constraints, from independent v (k,)."""
         if self.m == 0:
             return place(v, v[:0], part)
@@ -312,7 +314,9 @@ class VelocitySplit(eqx.Module):
             x = x - solve_square(jacobian, value)
         return place(v, _converged(c_dep, x, jacobian), part)
 
-    def velocities_and_rates(self, q, v, t, params, part: Partition):
+    def velocities_and_rates(
+        self, q: jax.Array, v: jax.Array, t: jax.typing.ArrayLike, params: PyTree, part: Partition
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """qd (s,), B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""
         if self.m == 0:
             B = place(jnp.eye(self.k, dtype=q.dtype), jnp.zeros((0, self.k), q.dtype), part)

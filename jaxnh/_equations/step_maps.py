@@ -40,10 +40,10 @@ class StepMaps(eqx.Module):
     """
 
     # positional-only: the integrators call the maps positionally, and overrides name their states as they like
-    def pre(self, t, y, args, /) -> tuple[Any, Union[jax.Array, bool]]:
+    def pre(self, t: jax.typing.ArrayLike, y: Any, args: Any, /) -> tuple[Any, Union[jax.Array, bool]]:
         return y, False
 
     def post(
-        self, t0, y0, t1, y1, args, /
+        self, t0: jax.typing.ArrayLike, y0: Any, t1: jax.typing.ArrayLike, y1: Any, args: Any, /
     ) -> tuple[Any, Optional[Any], Union[jax.Array, bool], Union[jax.Array, bool]]:
         return y1, None, False, False

@@ -48,7 +48,9 @@ class Substituted(Appell):
         vd = solve_spd(M_star, mm(B.T, Q) - dp + dTdq_I)
         return qd, mm(B, vd) + beta, vd
 
-    def accelerations(self, q, qd, t, params, multipliers: bool = False):
+    def accelerations(
+        self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object, multipliers: bool = False
+    ) -> tuple[jax.Array, jax.Array | None]:
         if multipliers:
             raise ValueError(
                 "method='substituted' has no multipliers: the constraint forces were "

@@ -116,7 +116,9 @@ class FrictionContact(eqx.Module):
         if isinstance(mus, float) and isinstance(muk, float) and mus < muk:
             raise ValueError(f"FrictionContact: expected mu_static ≥ mu_kinetic; got μs = {mus} < μk = {muk}")
 
-    def values(self, q, qd, t, params) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def values(
+        self, q: jax.typing.ArrayLike, qd: jax.typing.ArrayLike, t: jax.typing.ArrayLike, params: object
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """`(N, μs, μk)` at one state: normal force (N) and the two coefficients, scalars."""
         dtype = jnp.result_type(qd)
         out = []

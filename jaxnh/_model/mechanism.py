@@ -160,11 +160,11 @@ class Mechanism(eqx.Module):
 
     # --- evaluation helpers used by the formulations -------------------------
 
-    def n_constraints(self, q, qd, t, params) -> int:
+    def n_constraints(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> int:
         """Number m of velocity constraints (static): nonholonomic plus differentiated holonomic ones."""
         return eqx.filter_eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
 
-    def constraint(self, q, qd, t, params):
+    def constraint(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """Velocity constraints `[c(q, qd, t), ġ(q, qd, t)]`, shape (m,); empty without constraints."""
         parts = []
         if self.constraints is not None:
@@ -181,7 +181,7 @@ class Mechanism(eqx.Module):
             return jnp.zeros((0,), jnp.result_type(qd))
         return parts[0] if len(parts) == 1 else jnp.concatenate(parts)
 
-    def holonomic_residual(self, q, t, params):
+    def holonomic_residual(self, q: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """g(q, t), shape (h,) (empty without holonomic constraints): how far q is off them."""
         if self.holonomic is None:
             return jnp.zeros((0,), jnp.result_type(q))
@@ -196,7 +196,7 @@ class Mechanism(eqx.Module):
             )
         return Elimination(self.holonomic, self.dependent, self.guess, self.newton_iterations, self.newton_tol)
 
-    def newton_start(self, start):
+    def newton_start(self, start: Optional[jax.Array]) -> Optional[jax.Array]:
         """Where a solve that eliminates `dependent` starts Newton's method: `start` (q0's own
         dependent coordinates), or None (the `guess`) when the mechanism has a guess."""
         return None if self.guess is not None else start
@@ -206,7 +206,9 @@ class Mechanism(eqx.Module):
         dep = self.dependent or ()
         return tuple(i for i in range(s) if i not in dep)
 
-    def coordinates(self, q_ind, t, params, start=None):
+    def coordinates(
+        self, q_ind: jax.Array, t: jax.typing.ArrayLike, params: object, start: Optional[jax.Array] = None
+    ) -> jax.Array:
         """All coordinates q (s,) from the independent ones q_I (s − h,), in their units.
 
         The dependent coordinates solve g(q, t) = 0 by Newton's method from
@@ -216,7 +218,14 @@ class Mechanism(eqx.Module):
         """
         return self._elimination().coordinates(q_ind, t, params, start)
 
-    def full_state(self, q_ind, qd_ind, t, params, start=None):
+    def full_state(
+        self,
+        q_ind: jax.Array,
+        qd_ind: jax.Array,
+        t: jax.typing.ArrayLike,
+        params: object,
+        start: Optional[jax.Array] = None,
+    ) -> tuple[jax.Array, jax.Array]:
         """(q, qd), each (s,), from the independent coordinates q_I and their rates (g = 0, ġ = 0).
 
         `start`: where Newton's method starts for the dependent coordinates
@@ -224,11 +233,11 @@ class Mechanism(eqx.Module):
         """
         return self._elimination().state(q_ind, qd_ind, t, params, start)
 
-    def restore(self, q, t, params):
+    def restore(self, q: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """q (s,) with its dependent coordinates re-solved from the others (Newton from q's own q_D)."""
         return self._elimination().restore(q, t, params)
 
-    def project(self, q, t, params, iterations: int = 4):
+    def project(self, q: jax.Array, t: jax.typing.ArrayLike, params: object, iterations: int = 4) -> jax.Array:
         """The coordinates nearest to q (Euclidean, mixed units weighted alike) with g(q, t) = 0.
 
         Gauss–Newton, `iterations` steps; needs `holonomic` only. Use it on
@@ -261,7 +270,7 @@ class Mechanism(eqx.Module):
         """
         return _reduced(self, int(s), True)
 
-    def generalized_forces(self, q, qd, t, params):
+    def generalized_forces(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """Q(q, qd, t) − ∂V/∂q: all applied generalized forces, shape (s,)."""
         Q = jnp.zeros_like(qd)
         if self.forces is not None:
@@ -271,7 +280,7 @@ class Mechanism(eqx.Module):
             Q = Q - jax.grad(lambda x: potential(x, t, params))(q)
         return Q
 
-    def energy(self, q, qd, t, params):
+    def energy(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """Total mechanical energy T + V, J."""
         E = self.kinetic(q, qd, t, params)
         if self.potential is not None:
@@ -284,7 +293,13 @@ class Mechanism(eqx.Module):
 
     # --- validation ----------------------------------------------------------
 
-    def check_shapes(self, q, qd, t, params) -> int:
+    def check_shapes(
+        self,
+        q: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        qd: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        t: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        params: object,
+    ) -> int:
         """Check output shapes of the user functions at trace time; return m.
 
         Raises ValueError naming the function, the shape that came and the
@@ -366,7 +381,13 @@ class Mechanism(eqx.Module):
             check_independent(self.independent, s, m)
         return m
 
-    def check_finite(self, q, qd, t, params):
+    def check_finite(
+        self,
+        q: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        qd: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        t: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        params: object,
+    ) -> None:
         """Raise a ValueError naming the argument (or the params leaf) that holds
         NaN or inf; traced values are skipped."""
         leaves = {"q": q, "qd": qd, "t": t}
@@ -379,7 +400,15 @@ class Mechanism(eqx.Module):
                 if np.issubdtype(a.dtype, np.inexact) and not np.all(np.isfinite(a)):
                     raise ValueError(f"params{jax.tree_util.keystr(path)} must be finite; got {a}")
 
-    def check_values(self, q, qd, t, params, *, constraint_rtol: Optional[float] = None):
+    def check_values(
+        self,
+        q: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        qd: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        t: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        params: object,
+        *,
+        constraint_rtol: Optional[float] = None,
+    ) -> None:
         """Value checks at a concrete state (skipped for traced values).
 
         Non-finite inputs, a mass matrix that is not positive definite, and

@@ -87,7 +87,7 @@ class Profile(eqx.Module):
         none (the default)."""
         return None
 
-    def derivative(self, t):
+    def derivative(self, t: jax.typing.ArrayLike) -> jax.Array:
         """d/dt of the profile at t, by automatic differentiation."""
         return jax.jvp(self.__call__, (t,), (jnp.ones_like(t),))[1]
 
@@ -155,7 +155,7 @@ class Constant(Profile):
     value: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("value",)
 
-    def __init__(self, value):
+    def __init__(self, value: jax.typing.ArrayLike):
         self.value = jnp.asarray(value, dtype=jnp.result_type(float))
 
     def __call__(self, t):
@@ -176,7 +176,13 @@ class Fourier(Profile):
     period: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("mean", "cos", "sin")
 
-    def __init__(self, mean, cos=(), sin=(), period=1.0):
+    def __init__(
+        self,
+        mean: jax.typing.ArrayLike,
+        cos: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...] = (),
+        sin: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...] = (),
+        period: jax.typing.ArrayLike = 1.0,
+    ):
         f = jnp.result_type(float)
         self.mean = jnp.asarray(mean, dtype=f)
         c, s = jnp.atleast_1d(jnp.asarray(cos, dtype=f)), jnp.atleast_1d(jnp.asarray(sin, dtype=f))
@@ -208,7 +214,13 @@ class SmoothStep(Profile):
     width: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("before", "after")
 
-    def __init__(self, before, after, at, width):
+    def __init__(
+        self,
+        before: jax.typing.ArrayLike,
+        after: jax.typing.ArrayLike,
+        at: jax.typing.ArrayLike,
+        width: jax.typing.ArrayLike,
+    ):
         self.before, self.after, self.at, self.width = (_float(x) for x in (before, after, at, width))
         w = self.width
         if not isinstance(w, jax.core.Tracer) and not np.all(np.asarray(w) > 0):
@@ -234,7 +246,11 @@ class PiecewiseLinear(Profile):
     values: Float[Array, " n"]
     trainable_fields: ClassVar[tuple] = ("values",)
 
-    def __init__(self, knots, values):
+    def __init__(
+        self,
+        knots: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+        values: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+    ):
         self.knots, self.values = _knots("PiecewiseLinear", knots, values)
 
     def __call__(self, t):
@@ -322,7 +338,11 @@ class CubicSpline(Profile):
     values: Float[Array, " n"]
     trainable_fields: ClassVar[tuple] = ("values",)
 
-    def __init__(self, knots, values):
+    def __init__(
+        self,
+        knots: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+        values: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+    ):
         self.knots, self.values = _knots("CubicSpline", knots, values)
 
     def __call__(self, t):
@@ -346,7 +366,12 @@ class Sampled(Profile):
     moments: Float[Array, " n"]
     kind: str = eqx.field(static=True)
 
-    def __init__(self, ts, values, kind: str = "cubic"):
+    def __init__(
+        self,
+        ts: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+        values: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+        kind: str = "cubic",
+    ):
         if kind not in ("cubic", "linear"):
             raise ValueError(f"Sampled: kind must be 'cubic' or 'linear'; got {kind!r}")
         knots, vals = _knots("Sampled", ts, values)
@@ -409,7 +434,7 @@ class Positive(Profile):
     scale: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("inner",)
 
-    def __init__(self, inner: Profile, scale=1.0):
+    def __init__(self, inner: Profile, scale: jax.typing.ArrayLike = 1.0):
         if not isinstance(inner, Profile):
             raise TypeError(f"Positive: inner must be a jaxnh Profile; got {type(inner).__name__}")
         self.inner, self.scale = inner, _float(scale)
@@ -451,7 +476,7 @@ class Bounded(Profile):
     upper: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("inner",)
 
-    def __init__(self, inner: Profile, lower, upper):
+    def __init__(self, inner: Profile, lower: jax.typing.ArrayLike, upper: jax.typing.ArrayLike):
         if not isinstance(inner, Profile):
             raise TypeError(f"Bounded: inner must be a jaxnh Profile; got {type(inner).__name__}")
         self.inner, self.lower, self.upper = inner, _float(lower), _float(upper)
@@ -466,7 +491,7 @@ class Bounded(Profile):
         return self.inner.breakpoints()
 
     @staticmethod
-    def inverse(value, lower, upper):
+    def inverse(value: jax.typing.ArrayLike, lower: float | jax.Array, upper: float | jax.Array) -> jax.Array:
         """The inner value that maps to `value` (strictly between the bounds)."""
         s = (jnp.asarray(value) - lower) / (upper - lower)
         return jnp.log(s) - jnp.log1p(-s)

@@ -182,7 +182,7 @@ class RigidBodies(eqx.Module):
             (jnp.asarray(m), _as_mat3(I, f"RigidBodies `inertias` body {k} inertia I")) for k, (m, I) in enumerate(out)
         ]
 
-    def velocities(self, q, qd, t, p):
+    def velocities(self, q: ArrayLike, qd: ArrayLike, t: ArrayLike, p: Any) -> list[tuple[jax.Array, jax.Array]]:
         """Per body: mass-centre velocity ṙ (3,), m/s, and body angular velocity Ω (3,), rad/s."""
 
         def rates(q_, t_):
@@ -191,7 +191,7 @@ class RigidBodies(eqx.Module):
         poses, dposes = time_derivative(rates, q, qd, t)
         return [(dr, angular_velocity(R, dR)) for (r, R), (dr, dR) in zip(poses, dposes)]
 
-    def kinetic(self, q, qd, t, p):
+    def kinetic(self, q: ArrayLike, qd: ArrayLike, t: ArrayLike, p: Any) -> jax.Array | float:
         """Kinetic energy `T = Σ ½ m |ṙ|² + ½ Ωᵀ I Ω`, J."""
         vel = self.velocities(q, qd, t, p)
         T = 0.0
@@ -199,7 +199,9 @@ class RigidBodies(eqx.Module):
             T = T + 0.5 * m * mm(v, v) + 0.5 * mm(w, mm(I, w))
         return T
 
-    def accelerations(self, q, qd, qdd, t, p):
+    def accelerations(
+        self, q: ArrayLike, qd: ArrayLike, qdd: ArrayLike, t: ArrayLike, p: Any
+    ) -> list[tuple[jax.Array, jax.Array, jax.Array, jax.Array]]:
         """Per body: (ṙ, Ω, r̈, Ω̇) — velocities and their rates along the motion."""
         t = jnp.asarray(t, dtype=jnp.result_type(q))
 
@@ -209,7 +211,9 @@ class RigidBodies(eqx.Module):
         v, a = jax.jvp(vel, (q, qd, t), (qd, qdd, jnp.ones_like(t)))
         return [(v_, w_, a_, dw_) for (v_, w_), (a_, dw_) in zip(v, a)]
 
-    def acceleration_energy(self, q, qd, qdd, t, p):
+    def acceleration_energy(
+        self, q: ArrayLike, qd: ArrayLike, qdd: ArrayLike, t: ArrayLike, p: Any
+    ) -> jax.Array | float:
         """Acceleration energy `S = Σ ½ m |r̈|² + ½ Ω̇ᵀ I Ω̇ + Ω̇ · (Ω × I Ω)`, J/s².
 
         Terms free of accelerations are left out (they do not enter Appell's
@@ -221,7 +225,7 @@ class RigidBodies(eqx.Module):
             S = S + 0.5 * m * mm(a, a) + 0.5 * mm(dw, mm(I, dw)) + mm(dw, jnp.cross(w, mm(I, w)))
         return S
 
-    def potential(self, q, t, p):
+    def potential(self, q: ArrayLike, t: ArrayLike, p: Any) -> jax.Array | float:
         """Gravitational potential `V = −Σ m g · r`, J (needs `gravity`)."""
         if self.gravity is None:
             raise ValueError("RigidBodies.potential: no `gravity` was given")
@@ -287,7 +291,7 @@ class Wheel(eqx.Module):
         _tangent_basis(self.normal)
 
     @property
-    def tangents(self):
+    def tangents(self) -> np.ndarray:
         """Two orthonormal directions in the ground plane (a NumPy (2, 3) array):
         e_x and e_y projected on the plane and orthonormalised (e_x, e_y for a level plane)."""
         _, t1, t2 = _tangent_basis(self.normal)
@@ -300,24 +304,24 @@ class Wheel(eqx.Module):
         u = u / jnp.sqrt(mm(u, u))
         return c - self.radius(p) * u
 
-    def contact_point(self, q, t, p):
+    def contact_point(self, q: ArrayLike, t: ArrayLike, p: Any) -> jax.Array:
         """The contact point P (3,), m: the rim point lowest along the normal."""
         c, R = self.pose(q, t, p)
         return self._geometry(_as_vec3(c, "Wheel `pose` centre"), _as_mat3(R, "Wheel `pose` orientation"), p)
 
-    def height(self, q, t, p):
+    def height(self, q: ArrayLike, t: ArrayLike, p: Any) -> jax.Array:
         """Height of the lowest rim point above the plane, m (scalar; 0 on the ground)."""
         n = jnp.asarray(self.normal)
         return mm(n, self.contact_point(q, t, p))
 
-    def contact_velocity(self, q, qd, t, p):
+    def contact_velocity(self, q: ArrayLike, qd: ArrayLike, t: ArrayLike, p: Any) -> jax.Array:
         """Velocity of the wheel's material point at the contact, m/s (3,)."""
         (c, R), (dc, dR) = time_derivative(lambda q_, t_: self.pose(q_, t_, p), q, qd, t)
         P = self._geometry(c, R, p)
         w = angular_velocity(R, dR, frame="space")
         return dc + jnp.cross(w, P - c)
 
-    def slip(self, q, qd, t, p):
+    def slip(self, q: ArrayLike, qd: ArrayLike, t: ArrayLike, p: Any) -> jax.Array:
         """Tangential slip velocity at the contact along `tangents`, m/s (2,)."""
         v = self.contact_velocity(q, qd, t, p)
         return mm(jnp.asarray(self.tangents, dtype=v.dtype), v)

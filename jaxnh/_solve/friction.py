@@ -214,7 +214,7 @@ class ContactDiagnostics(eqx.Module):
             )
         return "\n".join(lines)
 
-    def annotate(self, message: str, status) -> str:
+    def annotate(self, message: str, status: STATUS) -> str:
         """`message`, with the time and the contact when the transition cap stopped the solve."""
         if np.ndim(status_code(status)) != 0 or not bool(status == STATUS.friction_transitions_exceeded):
             return message

@@ -52,19 +52,19 @@ class ODE(eqx.Module):
     form: Formulation
     expand: Optional[Expansion] = None
 
-    def unpack(self, y, t):
+    def unpack(self, y: PyTree, t: Any) -> tuple[jax.Array, jax.Array]:
         """Coordinates q (s,) and velocities qd (s,) from a state y at time t (s)."""
         q, qd = self.form.unpack(y, t, self.args[1])
         if self.expand is not None:
             q, qd, _ = self.expand(q, qd, t, self.args[1])
         return q, qd
 
-    def solver(self, solver):
+    def solver(self, solver: diffrax.AbstractAdaptiveSolver[Any]) -> diffrax.AbstractAdaptiveSolver[Any]:
         """`solver` with the formulation's step maps applied (or unchanged if it has none)."""
         maps = self.form.step_maps()
         return solver if maps is None else MappedSolver(solver, maps)
 
-    def error_norm(self, err):
+    def error_norm(self, err: PyTree) -> jax.Array:
         """RMS norm over the state entries that count in the error control."""
 
         flat = jax.flatten_util.ravel_pytree(err)[0]
@@ -110,8 +110,8 @@ def ode(
     t0 = as_time(t0, q0)
     expand = None
     if mech.dependent is not None:  # as in simulate: the dependent coordinates are eliminated
-        mech, method, params, q0, qd0, expand = eliminate(mech, as_formulation(method, independent), params, q0, qd0)
+        mech, method, params, q0, qd0, expand = eliminate(mech, as_formulation(method, independent), params, q0, qd0)  # pyright: ignore[reportArgumentType]
         independent = None
-    form = formulation(mech, method, q0, qd0, t0, params, independent)
+    form = formulation(mech, method, q0, qd0, t0, params, independent)  # pyright: ignore[reportArgumentType]
     y0 = form.state(q0, qd0, t0, params)
     return ODE(term=diffrax.ODETerm(field), y0=y0, args=(form, params, jnp.asarray(True)), form=form, expand=expand)

@@ -410,15 +410,24 @@ class DOP853(_UnrolledFSAL):
     interpolation_cls: ClassVar = _DOP853Interpolation
     stages_per_step: ClassVar[int] = 12  # evaluations per step (FSAL; +3 when dense output is used)
 
-    def order(self, terms):
+    def order(self, terms: Any) -> int:
         del terms
         return 8
 
-    def error_order(self, terms):
+    def error_order(self, terms: Any) -> int:
         del terms
         return 8
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+    def step(
+        self,
+        terms: diffrax.AbstractTerm,
+        t0: Any,
+        t1: Any,
+        y0: Any,
+        args: Any,
+        solver_state: Any,
+        made_jump: Any,
+    ) -> tuple[Any, Any, dict[str, Any], Any, diffrax.RESULTS]:
         vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
         dt = t1 - t0
@@ -579,15 +588,24 @@ class UnrolledTsit5(_UnrolledFSAL):
     interpolation_cls: ClassVar = _Tsit5Interpolation
     stages_per_step: ClassVar[int] = 6  # vector-field evaluations per step (FSAL), for Solution.stats
 
-    def order(self, terms):
+    def order(self, terms: Any) -> int:
         del terms
         return 5
 
-    def error_order(self, terms):
+    def error_order(self, terms: Any) -> int:
         del terms
         return 5  # diffrax.Tsit5's choice, so both take the same steps
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+    def step(
+        self,
+        terms: diffrax.AbstractTerm,
+        t0: Any,
+        t1: Any,
+        y0: Any,
+        args: Any,
+        solver_state: Any,
+        made_jump: Any,
+    ) -> tuple[Any, Any, dict[str, Any], Any, diffrax.RESULTS]:
         vf = _shared_vf(terms)
         control = terms.contr(t0, t1)
         dt = t1 - t0

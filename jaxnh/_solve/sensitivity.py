@@ -67,20 +67,20 @@ class ForwardSensitivity(eqx.Module):
 
     def solve(
         self,
-        vector_field,
-        solver,
-        maps,
-        y0,
-        args,
-        saveat,
-        controller,
+        vector_field: object,
+        solver: diffrax.AbstractSolver,
+        maps: object,
+        y0: PyTree,
+        args: PyTree,
+        saveat: diffrax.SaveAt,
+        controller: diffrax.AbstractStepSizeController,
         *,
-        t0,
-        t1,
-        max_steps,
-        dt0,
-        error_mask=None,
-    ):
+        t0: jax.typing.ArrayLike,
+        t1: jax.typing.ArrayLike,
+        max_steps: int | None,
+        dt0: jax.typing.ArrayLike | None,
+        error_mask: tuple[float, ...] | None = None,
+    ) -> tuple[jax.Array, PyTree, diffrax.RESULTS, dict]:
         """The solve of `vector_field(t, y, args)` from y0 at t0 to t1, saved at `saveat`.
 
         Returns `(ts, ys, result, stats)`, differentiable in `args` and `y0` by

@@ -771,7 +771,7 @@ def _run_traced(
                 "adjoint=ForwardSensitivity() supports saving at report times only; dense output, events and "
                 "progress meters need a diffrax adjoint, e.g. diffrax.RecursiveCheckpointAdjoint()"
             )
-        out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller, **kw)
+        out_ts, ys, result, stats = adjoint.solve(field, solver, maps, y0, args, saveat, controller, **kw)  # pyright: ignore[reportArgumentType]
     else:
         adaptive = not isinstance(controller, diffrax.ConstantStepSize)
         if event is not None and not boolean and coarse_interpolant(solver) and adaptive:

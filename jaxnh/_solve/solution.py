@@ -28,7 +28,7 @@ class DenseMotion(eqx.Module):
     params: Any
     expand: Optional["Expansion"] = None
 
-    def evaluate(self, t):
+    def evaluate(self, t: Float[Array, ""] | float) -> tuple[Float[Array, " s"], Float[Array, " s"]]:
         """Coordinates and velocities `(q, qd)` at time t, s."""
         y = self.interpolation.evaluate(t)
         q, qd = self.form.unpack(y, t, self.params)
@@ -109,11 +109,11 @@ class Solution(eqx.Module):
     contacts: Any = None  # a jaxnh.ContactDiagnostics (defined with the friction solve)
 
     @property
-    def success(self):
+    def success(self) -> Bool[Array, "..."]:
         """Boolean (array under vmap): did the solve reach its end."""
         return self.status == STATUS.successful
 
-    def evaluate(self, t):
+    def evaluate(self, t: Float[Array, ""] | float) -> tuple[Float[Array, " s"], Float[Array, " s"]]:
         """`(q, qd)` at any time t (s) from the dense output (needs `saveat=SaveAt(dense=True)`)."""
         if self.dense is None:
             raise ValueError(
@@ -141,11 +141,11 @@ class Solution(eqx.Module):
         n_failed = codes.size - int(np.sum(codes == status_code_int(STATUS.successful)))
         return f"{n_failed} of {codes.size} failed: " + "; ".join(parts)
 
-    def to_dataframe(self):
+    def to_dataframe(self) -> Any:
         """The motion as a pandas DataFrame (needs pandas)."""
         return solution_to_dataframe(self)
 
-    def to_xarray(self):
+    def to_xarray(self) -> Any:
         """The motion as an `xarray.Dataset` (needs xarray: the `data` extra).
 
         Dimensions "t" (the report times `ts`, s) and "coordinate" (labelled by

@@ -106,37 +106,46 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
         return getattr(self.solver, "stages_per_step", None)
 
     @property
-    def term_structure(self):
+    def term_structure(self) -> Any:
         return self.solver.term_structure
 
     # An implicit wrapped solver makes this one implicit too (diffrax forwards `isinstance` through
     # `AbstractWrappedSolver`), and diffrax then reads and sets the root finder's tolerances on it.
     @property
-    def root_finder(self):
+    def root_finder(self) -> Any:
         return self.solver.root_finder  # pyright: ignore[reportAttributeAccessIssue]
 
     @property
-    def root_find_max_steps(self):
+    def root_find_max_steps(self) -> int:
         return self.solver.root_find_max_steps  # pyright: ignore[reportAttributeAccessIssue]
 
     @property
-    def interpolation_cls(self):  # pyright: ignore
+    def interpolation_cls(self) -> Callable[..., diffrax.AbstractLocalInterpolation]:  # pyright: ignore
         return self.solver.interpolation_cls
 
     @property
-    def term_compatible_contr_kwargs(self):
+    def term_compatible_contr_kwargs(self) -> Any:
         return self.solver.term_compatible_contr_kwargs
 
-    def order(self, terms):
+    def order(self, terms: Any) -> int | None:
         return self.solver.order(terms)
 
-    def error_order(self, terms):
+    def error_order(self, terms: Any) -> Any:
         return self.solver.error_order(terms)
 
-    def init(self, terms, t0, t1, y0, args):
+    def init(self, terms: Any, t0: Any, t1: Any, y0: Any, args: Any) -> Any:
         return self.solver.init(terms, t0, t1, y0, args)
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+    def step(
+        self,
+        terms: Any,
+        t0: Any,
+        t1: Any,
+        y0: Any,
+        args: Any,
+        solver_state: Any,
+        made_jump: Any,
+    ) -> tuple[Any, Any | None, dict[str, Any], Any, diffrax.RESULTS]:
         y0, jumped = self.maps.pre(t0, y0, args)
         if jumped is not False:
             made_jump = jnp.logical_or(made_jump, jumped)
@@ -158,7 +167,7 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
             result = diffrax.RESULTS.where(fail, diffrax.RESULTS.singular, result)  # pyright: ignore[reportArgumentType]
         return y1_mapped, y_error, dense_info, solver_state, result
 
-    def func(self, terms, t0, y0, args):
+    def func(self, terms: Any, t0: Any, y0: Any, args: Any) -> Any:
         return self.solver.func(terms, t0, y0, args)
 
 

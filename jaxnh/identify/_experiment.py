@@ -180,16 +180,22 @@ class Experiment(eqx.Module):
         """Entries of θ that are free parameters (the rest is the initial state)."""
         return self.problem.par.size
 
-    def theta(self, params=None):
+    def theta(self, params: Optional[PyTree] = None) -> jax.Array:
         """θ at `params` (default: the nominal params)."""
         par = self.problem.par
         return jnp.concatenate([par.pack(par.params if params is None else params), self.state])
 
-    def with_params(self, params) -> "Experiment":
+    def with_params(self, params: PyTree) -> "Experiment":
         """The same experiment with other inputs (and nominal values) from `params`."""
         return eqx.tree_at(lambda e: e.problem.par.params, self, params)
 
-    def simulate(self, params=None, theta=None, record=("multipliers",), adjoint=None):
+    def simulate(
+        self,
+        params: Optional[PyTree] = None,
+        theta: Optional[jax.Array] = None,
+        record: str | Sequence[str] = ("multipliers",),
+        adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None,
+    ) -> Any:
         """The nominal motion at `params` (θ overrides the free values): a `Solution`."""
         pr = self.problem if params is None else self.with_params(params).problem
         th = self.theta(params) if theta is None else theta
@@ -211,7 +217,7 @@ class Experiment(eqx.Module):
             record=record,
         )
 
-    def jacobian(self, params=None):
+    def jacobian(self, params: Optional[PyTree] = None) -> tuple[jax.Array, Any]:
         """Whitened sensitivities J = ∂(q_obs/σ)/∂θ (n·k, size) at `params`,
         and the nominal `Solution` (with multipliers) from the same solve."""
         obs = jnp.asarray(self.problem.observed)
@@ -223,7 +229,7 @@ class Experiment(eqx.Module):
         J, sol = jax.jacfwd(f, has_aux=True)(self.theta(params))
         return J, sol
 
-    def fisher(self, params=None):
+    def fisher(self, params: Optional[PyTree] = None) -> jax.Array:
         """Fisher information F = JᵀJ (size, size) of θ, for unit-variance whitened noise."""
         J, _ = self.jacobian(params)
         return J.T @ J

@@ -160,7 +160,13 @@ class FitResult(Estimates):
     def __str__(self) -> str:
         return self.summary()
 
-    def summary(self, truth: Optional[dict] = None, *, units: Optional[dict] = None, residual_unit=(1.0, "")) -> str:
+    def summary(
+        self,
+        truth: Optional[dict] = None,
+        *,
+        units: Optional[dict] = None,
+        residual_unit: tuple[float, str] = (1.0, ""),
+    ) -> str:
         """A table of estimates ± standard errors with 95 % intervals, then the residual
         statistics, convergence, the lack-of-fit test and the identifiability report.
 

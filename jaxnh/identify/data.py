@@ -133,7 +133,7 @@ class Record:
             self.sigma,
         )
 
-    def observed(self, names) -> np.ndarray:
+    def observed(self, names: Sequence[str]) -> np.ndarray:
         """The channels `names` stacked as (n, len(names))."""
         missing = [c for c in names if c not in self.channels]
         if missing:
@@ -144,7 +144,13 @@ class Record:
 
     @classmethod
     def from_dataframe(
-        cls, df, time: str | None = "t", observed=None, inputs=(), sigma=None, source: str = ""
+        cls,
+        df: Any,
+        time: str | None = "t",
+        observed: str | Sequence[str] | None = None,
+        inputs: str | Sequence[str] = (),
+        sigma: dict | float | None = None,
+        source: str = "",
     ) -> "Record":
         """A record from a pandas DataFrame (pandas is needed only for this).
 

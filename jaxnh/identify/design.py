@@ -66,7 +66,12 @@ class Chebyshev(Profile):
     t1: Float[Array, ""]
     trainable_fields: ClassVar[tuple] = ("coef",)
 
-    def __init__(self, coef, t0=0.0, t1=1.0):
+    def __init__(
+        self,
+        coef: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
+        t0: jax.typing.ArrayLike = 0.0,
+        t1: jax.typing.ArrayLike = 1.0,
+    ):
         f = jnp.result_type(float)
         self.coef = jnp.atleast_1d(jnp.asarray(coef, dtype=f))
         if self.coef.ndim != 1 or self.coef.shape[0] < 1:

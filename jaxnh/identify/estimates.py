@@ -71,7 +71,9 @@ class Estimates:
         """Whether every free parameter is determined (by the data of a fit, by a predicted experiment)."""
         return self.identifiability.identifiable
 
-    def band(self, fn, ts):
+    def band(
+        self, fn: object, ts: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Value and standard error of a derived quantity `fn(params, t)` at times ts.
 
         The standard error is the linearised (delta-method) propagation of
@@ -84,7 +86,9 @@ class Estimates:
         """
         return estimate_band(self.problem, self.theta, self.cov_theta, self.null_directions, fn, ts)
 
-    def profile_band(self, name: str, ts):
+    def profile_band(
+        self, name: str, ts: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...]
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Value and standard error of the free profile `name` (e.g. "U21") at times ts."""
         return self.band(_ProfileAt(name), ts)
 

@@ -119,7 +119,7 @@ class Problem(eqx.Module):
         """Absolute tolerance of the ODE solves, in the units of the state (concrete problems only)."""
         return float(self.tol[1])
 
-    def with_tolerances(self, rtol, atol) -> "Problem":
+    def with_tolerances(self, rtol: float, atol: float) -> "Problem":
         """The same problem solved at other tolerances (the same compiled programs)."""
         return dataclasses.replace(self, tol=jnp.asarray([rtol, atol], dtype=self.tol.dtype))
 
@@ -154,7 +154,7 @@ class Problem(eqx.Module):
         """Length of θ."""
         return self.n_params + self.n_initial + (len(self.starts) - 1) * self.n_segment_state
 
-    def labels(self, names) -> tuple:
+    def labels(self, names: tuple[str, ...] | list[str]) -> tuple:
         """Labels of θ's entries, given the coordinate names."""
         lab = list(self.par.labels)
         lab += [f"{names[i]}(t0)" for i in self.observed]
@@ -169,7 +169,7 @@ class Problem(eqx.Module):
         m = s - len(self.independent)
         return VelocitySplit(self.mech, s, m)
 
-    def initial_state(self, theta, t0, params):
+    def initial_state(self, theta: jax.Array, t0: jax.typing.ArrayLike, params: Any) -> tuple[jax.Array, jax.Array]:
         """(q0, qd0) at the first sample from θ (dependent velocities from the constraints)."""
         P, k = self.n_params, len(self.observed)
         q0 = self.q0_fixed
@@ -178,7 +178,7 @@ class Problem(eqx.Module):
         v0 = theta[P + k : P + self.n_initial]
         return q0, self.split().velocities(q0, v0, t0, params, self.independent)
 
-    def segment_states(self, theta, t_starts, params):
+    def segment_states(self, theta: jax.Array, t_starts: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:
         """(q, qd) at the start of segments 1.. (each (S−1, s))."""
         base = self.n_params + self.n_initial
         X = theta[base:].reshape(len(self.starts) - 1, self.n_segment_state)
@@ -211,13 +211,15 @@ class Problem(eqx.Module):
         )
         return sol.q, sol.qd
 
-    def trajectory(self, theta, t, adjoint=None):
+    def trajectory(
+        self, theta: jax.Array, t: jax.Array, adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None
+    ) -> jax.Array:
         """Simulated coordinates (n, s) at the sample times t from θ (single shooting)."""
         params = self.par.unpack(theta[: self.n_params])
         q0, qd0 = self.initial_state(theta, t[0], params)
         return self._simulate(params, q0, qd0, t, adjoint)[0]
 
-    def raw_residuals(self, theta, data: Observations):
+    def raw_residuals(self, theta: jax.Array, data: Observations) -> jax.Array:
         """Weighted residuals (vector) without the custom Jacobian rule."""
         # the Jacobian of the residuals the fit computes: the sensitivities take the primal solve's
         # steps (no sensitivity error control), so Gauss–Newton sees the derivative of its own residual
@@ -266,7 +268,7 @@ class Problem(eqx.Module):
             return n_samples * k
         return S * self.length * k + (S - 1) * self.n_segment_state
 
-    def residuals(self, theta, data: Observations):
+    def residuals(self, theta: jax.Array, data: Observations) -> jax.Array:
         """Weighted residuals; forward-mode problems carry a one-pass Jacobian rule."""
         if self.differentiation == "forward":
             return _residuals_fwd(self, theta, data)

@@ -78,7 +78,7 @@ class FitSpec:
     qd0: Any = None
     options: dict = dataclasses.field(default_factory=dict)
 
-    def params_for(self, record):
+    def params_for(self, record: Any) -> Any:
         """The starting params for `record` (calls `params(record)` when it is a function)."""
         p = self.params
         if callable(p) and not isinstance(p, (dict, list, tuple)) and not _is_pytree_module(p):

@@ -219,12 +219,12 @@ def bodies() -> RigidBodies:
     )
 
 
-def front_contact(q, t, p):
+def front_contact(q: jax.typing.ArrayLike, t: jax.typing.ArrayLike, p: dict) -> jax.Array:
     """Height of the front wheel's lowest point above the ground, m (holonomic: 0)."""
     return jnp.stack([FRONT_WHEEL.height(q, t, p)])
 
 
-def rolling(q, qd, t, p):
+def rolling(q: jax.typing.ArrayLike, qd: jax.typing.ArrayLike, t: jax.typing.ArrayLike, p: dict) -> jax.Array:
     """Slip velocities of the rear and front contacts along x and y, m/s (4,)."""
     return jnp.concatenate([REAR_WHEEL.slip(q, qd, t, p), FRONT_WHEEL.slip(q, qd, t, p)])
 
@@ -265,7 +265,7 @@ def mechanism(method: str = "appell") -> Mechanism:
 # --- steady running and its linearisation ------------------------------------------------
 
 
-def upright(v, params):
+def upright(v: jax.typing.ArrayLike, params: dict) -> tuple[jax.Array, jax.Array]:
     """Upright straight running at forward speed v (m/s): (q, q̇) in all 8 coordinates.
 
     The reference configuration, moving along x: ẋ = v and the wheels turn at
@@ -287,7 +287,7 @@ def _reduce(idx):
     return tuple(FREE.index(i) for i in idx)
 
 
-def linearized(v, params=None, method: str = "lagrange"):
+def linearized(v: jax.typing.ArrayLike, params: dict | None = None, method: str = "lagrange") -> Linearization:
     """`jaxnh.Linearization` of upright straight running at speed v (m/s).
 
     State `(roll, steer, d roll, d rear_wheel, d steer)`; the position,
@@ -329,7 +329,7 @@ def linearized(v, params=None, method: str = "lagrange"):
 LEAN_STEER = (0, 1, 2, 4)  # roll, steer, d roll, d steer within the linearised state
 
 
-def linear_lean_steer(v, params=None, method: str = "lagrange"):
+def linear_lean_steer(v: jax.typing.ArrayLike, params: dict | None = None, method: str = "lagrange") -> jax.Array:
     """The 4×4 state matrix for (roll, steer, roll rate, steer rate) at forward speed v (m/s).
 
     From the nonlinear model by automatic differentiation (`linearized`);
@@ -356,7 +356,11 @@ def _linearized_speeds_uncompiled(speeds, params, method):
 _linearized_speeds: Callable[..., Linearization] = one_shot_jit(_linearized_speeds_uncompiled)
 
 
-def linearized_speeds(speeds, params=None, method: str = "lagrange"):
+def linearized_speeds(
+    speeds: jax.typing.ArrayLike | list[jax.typing.ArrayLike] | tuple[jax.typing.ArrayLike, ...],
+    params: dict | None = None,
+    method: str = "lagrange",
+) -> Linearization:
     """`linearized` at each of `speeds` (m/s): a batched `Linearization`.
 
     For concrete speeds and parameters, `linearized` at each speed, stacked: its programs are
@@ -372,7 +376,7 @@ def linearized_speeds(speeds, params=None, method: str = "lagrange"):
     return jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *each)
 
 
-def canonical_from(lin, g) -> dict:
+def canonical_from(lin: Linearization, g: jax.typing.ArrayLike) -> dict:
     """M, C1, K0, K2 from a batched `Linearization` whose first two speeds are 0 and 1 m/s."""
     # concrete: selected on the host (eagerly, each indexing operation is a program to compile)
     xp = jnp if is_traced(lin, g) else np
@@ -387,7 +391,7 @@ def canonical_from(lin, g) -> dict:
     return out if xp is jnp else {k: jnp.asarray(v) for k, v in out.items()}
 
 
-def canonical_matrices(params=None, method: str = "lagrange") -> dict:
+def canonical_matrices(params: dict | None = None, method: str = "lagrange") -> dict:
     """The benchmark's M, C1, K0, K2 (2×2 each) of the linearised model.
 
     The lean and steer equations linearised about upright running are
@@ -399,7 +403,9 @@ def canonical_matrices(params=None, method: str = "lagrange") -> dict:
     return canonical_from(linearized_speeds(jnp.array([0.0, 1.0]), params, method), params["g"])
 
 
-def characteristic_polynomial(mats, v, g):
+def characteristic_polynomial(
+    mats: dict, v: jax.typing.ArrayLike, g: jax.typing.ArrayLike
+) -> tuple[jax.typing.ArrayLike, ...]:
     """Coefficients a4..a0 of det(λ² M + λ v C1 + g K0 + v² K2)."""
     M, C, K = mats["M"], v * mats["C1"], g * mats["K0"] + v**2 * mats["K2"]
     a4 = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
@@ -423,7 +429,12 @@ def _matrices(params, method, matrices):
     return {k: np.asarray(x, dtype=float) for k, x in mats.items()}, float(params["g"])
 
 
-def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matrices=None) -> float:
+def weave_speed(
+    params: dict | None = None,
+    bracket: tuple[float, float] = (1.0, 5.5),
+    method: str = "lagrange",
+    matrices: dict | None = None,
+) -> float:
     """Speed (m/s) where the weave mode becomes stable.
 
     Its complex pair crosses the imaginary axis where the Hurwitz
@@ -441,7 +452,12 @@ def weave_speed(params=None, bracket=(1.0, 5.5), method: str = "lagrange", matri
     return _root(hurwitz, *bracket)
 
 
-def capsize_speed(params=None, bracket=(5.0, 10.0), method: str = "lagrange", matrices=None) -> float:
+def capsize_speed(
+    params: dict | None = None,
+    bracket: tuple[float, float] = (5.0, 10.0),
+    method: str = "lagrange",
+    matrices: dict | None = None,
+) -> float:
     """Speed (m/s) where the capsize mode becomes unstable: its real eigenvalue
     crosses zero, where `a0 = det(g K0 + v² K2)` vanishes (root in `bracket`)."""
     mats, g = _matrices(params, method, matrices)

@@ -98,14 +98,14 @@ def mechanism() -> Mechanism:
     return MECHANISM
 
 
-def default_params(m=1.0, r=0.3, g=9.81) -> dict:
+def default_params(m: float | jnp.ndarray = 1.0, r: float | jnp.ndarray = 0.3, g: float | jnp.ndarray = 9.81) -> dict:
     """A uniform thin disc of mass m (kg) and radius r (m): I1 = m r²/4, I3 = m r²/2."""
     f = jnp.result_type(float)
     m, r = jnp.asarray(m, f), jnp.asarray(r, f)
     return {"m": m, "r": r, "I1": m * r**2 / 4, "I3": m * r**2 / 2, "g": jnp.asarray(g, f)}
 
 
-def steady_spin(lean, yaw_rate, p):
+def steady_spin(lean: float | jnp.ndarray, yaw_rate: float | jnp.ndarray, p: dict) -> jnp.ndarray:
     """Spin rate θ̇ (rad/s) of the steady motion at lean φ (rad) and yaw rate Ψ (rad/s)."""
     s, c = jnp.sin(lean), jnp.cos(lean)
     w2 = (p["I1"] * yaw_rate**2 * s * c - p["m"] * p["g"] * p["r"] * s) / (
@@ -114,7 +114,7 @@ def steady_spin(lean, yaw_rate, p):
     return w2 - yaw_rate * s
 
 
-def steady_state(lean, yaw_rate, p):
+def steady_state(lean: float | jnp.ndarray, yaw_rate: float | jnp.ndarray, p: dict) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(q, q̇) at t = 0 of the steady motion, starting at the origin heading along x."""
     spin = steady_spin(lean, yaw_rate, p)
     lean = jnp.asarray(lean, dtype=spin.dtype)
@@ -124,7 +124,7 @@ def steady_state(lean, yaw_rate, p):
     return q, qd
 
 
-def steady_path(p, ts, lean, yaw_rate):
+def steady_path(p: dict, ts: jnp.ndarray, lean: float | jnp.ndarray, yaw_rate: float | jnp.ndarray) -> jnp.ndarray:
     """Exact q (n, 5) of the steady motion from `steady_state`: the contact point
     on a circle of radius r θ̇ / Ψ, ψ = Ψ t, constant lean, θ = θ̇ t."""
     spin = steady_spin(lean, yaw_rate, p)
@@ -133,25 +133,25 @@ def steady_path(p, ts, lean, yaw_rate):
     return jnp.stack([R * jnp.sin(psi), R * (1 - jnp.cos(psi)), psi, jnp.full_like(ts, lean), spin * ts], axis=-1)
 
 
-def critical_spin(p):
+def critical_spin(p: dict) -> jnp.ndarray:
     """Spin rate (rad/s) above which upright rolling is stable: √(m g r I1 / (I3 (I3 + m r²)))."""
     return jnp.sqrt(p["m"] * p["g"] * p["r"] * p["I1"] / (p["I3"] * (p["I3"] + p["m"] * p["r"] ** 2)))
 
 
-def lean_eigenvalue_squared(spin, p):
+def lean_eigenvalue_squared(spin: float | jnp.ndarray, p: dict) -> jnp.ndarray:
     """λ² of the lean mode of upright rolling at spin Ω (1/s²): negative when stable."""
     mr2 = p["m"] * p["r"] ** 2
     return (p["m"] * p["g"] * p["r"] - (p["I3"] + mr2) * p["I3"] * spin**2 / p["I1"]) / (p["I1"] + mr2)
 
 
-def upright(spin, p):
+def upright(spin: float | jnp.ndarray, p: dict) -> tuple[jnp.ndarray, jnp.ndarray]:
     """(q, q̇) of upright straight rolling along x at spin Ω (rad/s), speed r Ω."""
     spin = jnp.asarray(spin, dtype=jnp.result_type(float))
     z = jnp.zeros_like(spin)
     return jnp.zeros(5, spin.dtype), jnp.stack([p["r"] * spin, z, z, z, spin])
 
 
-def linearized(q, qd, p, method: str = "lagrange", steady: bool = True):
+def linearized(q: jnp.ndarray, qd: jnp.ndarray, p: dict, method: str = "lagrange", steady: bool = True) -> object:
     """`jaxnh.Linearization` about (q, q̇) with state (lean, d yaw, d lean, d spin).
 
     Position, heading and spin angle are ignorable. `steady=True` declares

@@ -68,7 +68,14 @@ class VariatorParams(eqx.Module):
     M1: Profile
     M2: Profile
 
-    def __init__(self, J1, J2, U21, M1: ArrayLike | Profile = 0.0, M2: ArrayLike | Profile = 0.0):
+    def __init__(
+        self,
+        J1: ArrayLike,
+        J2: ArrayLike,
+        U21: ArrayLike | Profile,
+        M1: ArrayLike | Profile = 0.0,
+        M2: ArrayLike | Profile = 0.0,
+    ):
         f = jnp.result_type(float)
         self.J1 = jnp.asarray(J1, dtype=f)
         self.J2 = jnp.asarray(J2, dtype=f)
@@ -131,7 +138,14 @@ class DriveParams(eqx.Module):
     mu_static: Float[Array, ""]
     mu_kinetic: Float[Array, ""]
 
-    def __init__(self, variator: VariatorParams, radius, normal_force, mu_static, mu_kinetic):
+    def __init__(
+        self,
+        variator: VariatorParams,
+        radius: ArrayLike,
+        normal_force: ArrayLike,
+        mu_static: ArrayLike,
+        mu_kinetic: ArrayLike,
+    ):
         f = jnp.result_type(float)
         self.variator = variator
         self.radius, self.normal_force = jnp.asarray(radius, dtype=f), jnp.asarray(normal_force, dtype=f)
@@ -208,19 +222,19 @@ def default_params() -> VariatorParams:
 # --- the paper's equations, by hand, as references ----------------------------
 
 
-def paper_eq9(phi1d, t, p: VariatorParams):
+def paper_eq9(phi1d: ArrayLike, t: ArrayLike, p: VariatorParams) -> jax.Array:
     """phi1'' from the correct eq. (9)."""
     U, dU = p.U21(t), p.U21.derivative(t)
     return (p.M1(t) + U * p.M2(t) - p.J2 * U * dU * phi1d) / (p.J1 + p.J2 * U**2)
 
 
-def paper_eq16(phi1d, t, p: VariatorParams):
+def paper_eq16(phi1d: ArrayLike, t: ArrayLike, p: VariatorParams) -> jax.Array:
     """phi1'' from the naive eq. (16) (velocity term twice too large)."""
     U, dU = p.U21(t), p.U21.derivative(t)
     return (p.M1(t) + U * p.M2(t) - 2 * p.J2 * U * dU * phi1d) / (p.J1 + p.J2 * U**2)
 
 
-def paper_multiplier(phi1d, phi1dd, t, p: VariatorParams):
+def paper_multiplier(phi1d: ArrayLike, phi1dd: ArrayLike, t: ArrayLike, p: VariatorParams) -> jax.Array:
     """lambda = M2 − J2 (U21' phi1' + U21 phi1''), N·m (from eq. 8)."""
     return p.M2(t) - p.J2 * (p.U21.derivative(t) * phi1d + p.U21(t) * phi1dd)
 
@@ -228,7 +242,15 @@ def paper_multiplier(phi1d, phi1dd, t, p: VariatorParams):
 # --- closed form by quadrature ---------------------------------------------------
 
 
-def closed_form(p: VariatorParams, ts, phi0=(0.0, 0.0), w0=1.0, *, max_panel: float = 0.02, nodes: int = 10):
+def closed_form(
+    p: VariatorParams,
+    ts: ArrayLike | list[ArrayLike] | tuple[ArrayLike, ...],
+    phi0: tuple[float, float] | jax.Array | np.ndarray = (0.0, 0.0),
+    w0: ArrayLike = 1.0,
+    *,
+    max_panel: float = 0.02,
+    nodes: int = 10,
+) -> tuple[jax.Array, jax.Array]:
     """The exact motion by quadrature, for torques that depend on time only.
 
     With I(t) = J1 + J2 U21(t)² and w = phi1', eq. (9) is
