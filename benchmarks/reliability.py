@@ -3,6 +3,7 @@ silent wrong answer found, written to benchmarks/RELIABILITY.md.
 
     .venv/bin/python -m benchmarks.reliability            # the full run (a few minutes of CPU)
     .venv/bin/python -m benchmarks.reliability --quick    # fewer examples per class
+    .venv/bin/python -m benchmarks.reliability --only nonlinear   # one family; its table on stdout
 
 The case generators and the oracle are those of the test suite (benchmarks/reliability_cases.py,
 tests/test_fuzz.py, tests/test_gradient_matrix.py); the CSV reader's classes come from the
@@ -36,6 +37,7 @@ from hypothesis import strategies as st  # noqa: E402
 import jaxnh as nh  # noqa: E402
 from benchmarks import (
     reliability_cases as R,  # noqa: E402
+    reliability_nonlinear as N,  # noqa: E402
     reliability_pendulum as P,  # noqa: E402
 )
 from jaxnh._base.status import describe  # noqa: E402
@@ -167,6 +169,17 @@ def run_pendulum(tally, n):
                     for jit in (False, True):
                         api = f"consistent_velocities (pendulum, {t}), " + ("jax.jit" if jit else "eager")
                         tally.add(api, f"cv: {cls}", c, P.run_cv(c, mech, P.PendulumModel, jit), c.what)
+
+
+def run_nonlinear(tally, n):
+    """The declared-nonlinear family (benchmarks/reliability_nonlinear.py): the shafts with
+    `nonlinear_constraints=True`, through simulate (eager, jit, jit(vmap(value_and_grad)), both
+    methods), linearize, consistent_velocities and fit."""
+    counts = dict(eager=n["nl_eager"], jit=n["nl_jit"], batches=n["nl_batches"], lin=n["nl_lin"])
+    counts.update(cv=n["nl_cv"], fit=n["nl_fit"])
+    with timed(tally, "nonlinear constraints"):
+        for api, cls, case, outcome in N.run_all(counts):
+            tally.add(api, cls, case, outcome, case.what)
 
 
 def run_sharpness(tally, n):
@@ -342,6 +355,15 @@ def repro(row, case, outcome) -> str:
             f"q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r},\n"
             f"ts={np.asarray(case.ts).tolist()!r}, tt={np.asarray(case.tt).tolist() if case.tt is not None else None!r}"
         )
+    if case.family == N.FAMILY:
+        call = "consistent_velocities(SHAFTS_NL, q0, qd, t=ts[0], params)" if "consistent" in api else api
+        return (
+            f"# {call}: SHAFTS_NL of benchmarks/reliability_nonlinear.py\n"
+            f"params={ {k: float(v) for k, v in case.params.items()}!r},\n"
+            f"q0={np.asarray(case.q0).tolist()!r}, qd0={np.asarray(case.qd0).tolist()!r},\n"
+            + (f"qd={np.asarray(case.qd).tolist()!r}, " if case.qd is not None else "")
+            + f"ts={np.asarray(case.ts).tolist()!r}"
+        )
     if case.family == "locked" and case.params is not None:
         return (
             f"simulate(LOCKED, params={ {k: float(v) for k, v in case.params.items()}!r},\n"
@@ -352,6 +374,8 @@ def repro(row, case, outcome) -> str:
 
 
 def _family(api, cls):
+    if api.startswith("nonlinear"):
+        return "shafts, declared nonlinear constraint (nonlinear_constraints=True)"
     if "pendulum" in api:
         return "pendulum (holonomic constraint, events, dense output)"
     if api.startswith("gradient matrix"):
@@ -422,7 +446,11 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
         "dense output by its `dense_output`); terminating events x = xe (times to "
         "(MOTION_RTOL · scale of x + MOTION_ATOL) / |ẋ| at the crossing, and ∂t/∂(L, c) by `jax.grad` and "
         "`jax.jacfwd`), dense output at random times, and `consistent_velocities` against the "
-        "hand-written Cartesian projection."
+        "hand-written Cartesian projection. The declared-nonlinear family "
+        "(`benchmarks/reliability_nonlinear.py`): the shafts with `nonlinear_constraints=True` and "
+        "nl ≠ 0, through both methods, `linearize` (phi1' or phi2' dependent) and "
+        "`consistent_velocities` (against the exact kinetic-energy projection), with classes near and "
+        "at the fold of the quadratic c (∂c/∂qd singular when a1 = a2 = 0) and a start on its far root."
     )
     add("")
     total = collections.Counter()
@@ -597,24 +625,53 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
     return n_sw, unknown
 
 
+def print_only(tally, elapsed):
+    """The outcomes of a run limited to one family (`--only`), on stdout; 1 if any bad outcome lies
+    outside the known issues."""
+    print("| interface | class | cases | " + " | ".join(R.OUTCOMES) + " | largest error of a right answer |")
+    print("|---|---|---:|" + "---:|" * (len(R.OUTCOMES) + 1))
+    for (api, cls), cnt in tally.counts.items():
+        print(
+            f"| {api} | {cls} | {sum(cnt.values())} | "
+            + " | ".join(str(cnt[k] or "") for k in R.OUTCOMES)
+            + f" | {_fmt(tally.largest.get((api, cls), 0.0))} |"
+        )
+    for key, items in tally.bad.items():
+        print(f"\n{key}: {len(items)} bad outcomes, e.g. {items[0][0]}: {items[0][2].detail}")
+        print(repro(*items[0]))
+    print(f"\n{elapsed:.0f} s of CPU")
+    return 1 if "UNKNOWN" in tally.bad else 0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer examples per class (a smoke run)")
+    ap.add_argument(
+        "--only",
+        choices=("nonlinear",),
+        help="run one family and print its outcomes per interface and class (RELIABILITY.md is not written)",
+    )
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     started = time.process_time()
     n = (
         dict(eager=8, jit=3, batches=3, lin=4, fit=1, csv=5, bytes=50)
         | dict(p_eager=3, p_jit=2, p_batches=1, p_event=3, p_dense=3, p_cv=2)
+        | dict(nl_eager=2, nl_jit=1, nl_batches=1, nl_lin=2, nl_cv=2, nl_fit=0)
         if args.quick
         else dict(eager=60, jit=15, batches=12, lin=30, fit=3, csv=40, bytes=400)
         | dict(p_eager=20, p_jit=10, p_batches=5, p_event=20, p_dense=30, p_cv=10)
+        | dict(nl_eager=10, nl_jit=4, nl_batches=2, nl_lin=8, nl_cv=8, nl_fit=2)
     )
     tally = Tally()
+    if args.only:
+        run_nonlinear(tally, n)
+        return print_only(tally, time.process_time() - started)
     run_simulate(tally, n["eager"], n["jit"], n["batches"])
     run_sharpness(tally, n["eager"] // 2)
     run_linearize(tally, n["lin"])
     run_pendulum(tally, n)
+    run_nonlinear(tally, n)
     cases_gm = R.gradient_matrix_cases()
     gm_default = R.run_gradient_matrix(cases_gm)
     gm_eager = R.run_gradient_matrix_eager(cases_gm)

@@ -289,8 +289,12 @@ def _kinematics_traced(mech, params, q, dq_dc, qd, t, coordinates, speeds, check
     split = VelocitySplit(mech, s, m)
     part = speeds if speeds is not None else best_partition(mech, q, qd, t, params, s, m)[0]
 
+    # a constraint nonlinear in the velocities may have several roots: Newton's method starts at
+    # the operating point's own dependent velocities, so the linearisation is about its root
+    start = split.dependent_of(qd, part) if mech.nonlinear_constraints else None
+
     def velocities(z):
-        return split.velocities_and_rates(z[:s], z[s:], t, params, part)
+        return split.velocities_and_rates(z[:s], z[s:], t, params, part, start)
 
     v0 = split.independent_of(qd, part)
     (qdot, B, beta), (Jqdot, JB, Jbeta) = value_and_jacfwd(velocities, jnp.concatenate([q, v0]))

@@ -84,6 +84,14 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "`independent=` to velocities they can be solved for, or use method='lagrange', which "
         "integrates all velocities and needs no such solve."
     )
+    nonlinear_branch = (
+        "qd0's dependent velocities lie on another root of the constraints nonlinear in the "
+        "velocities than the one method='appell' integrates: its state holds the independent "
+        "velocities only, and the dependent ones are solved at every evaluation by Newton's method "
+        "started from zero, which reaches a different root here (e.g. the negative root of a "
+        "quadratic constraint). Use method='lagrange', which integrates all velocities and stays on "
+        "qd0's root, or write the constraints so that qd0's root is the one nearest zero."
+    )
     holonomic_violated = (
         "The initial coordinates q0 do not satisfy the holonomic constraints g(q0, t0) = 0 (to √eps of "
         "their scale). The holonomic constraints are imposed on the velocities, so a q0 off g = 0 "
@@ -166,6 +174,7 @@ INPUT_FAILURES = (
     "holonomic_violated",
     "holonomic_branch",
     "nonlinear_constraints_unsolved",
+    "nonlinear_branch",
     "non_finite_input",
     "bad_report_times",
     "mass_matrix_not_positive_definite",

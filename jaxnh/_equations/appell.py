@@ -123,9 +123,9 @@ class Appell(Formulation):
         n = self.s + self.s - self.m
         return (1.0,) * n + (0.0,) * self.m if self.traced else None
 
-    def _independent_accelerations(self, q, v, t, params, part):
+    def _independent_accelerations(self, q, v, t, params, part, start=None):
         mech = self.bound_mech
-        qd, B, beta = self.split.velocities_and_rates(q, v, t, params, part)
+        qd, B, beta = self.split.velocities_and_rates(q, v, t, params, part, start)
         Q = mech.generalized_forces(q, qd, t, params)
         if mech.acceleration_energy is None:
             K, r = projected_terms(mech, q, qd, t, params, B, beta)
@@ -148,7 +148,8 @@ class Appell(Formulation):
     ) -> tuple[jax.Array, Optional[jax.Array]]:
         part = self._state_partition(q, qd, t, params)
         v = self.split.independent_of(qd, part)
-        qd, qdd, _ = self._independent_accelerations(q, v, t, params, part)
+        start = self.split.dependent_of(qd, part) if self.bound_mech.nonlinear_constraints else None
+        qd, qdd, _ = self._independent_accelerations(q, v, t, params, part, start)
         lam = multipliers_from_accelerations(self.bound_mech, q, qd, qdd, t, params) if multipliers else None
         return qdd, lam
 
@@ -176,10 +177,20 @@ class Appell(Formulation):
         status = STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
         if self.bound_mech.nonlinear_constraints:  # the dependent velocities must be solvable at the start
             part = self._state_partition(q, qd, t, params)
-            solved = self.split.velocities(q, self.split.independent_of(qd, part), t, params, part)
+            v = self.split.independent_of(qd, part)
+            solved = self.split.velocities(q, v, t, params, part)  # from zero, as the vector field does
             unsolved = ok & ~jnp.all(jnp.isfinite(solved))
             status = STATUS.where(unsolved, STATUS.nonlinear_constraints_unsolved, status)
             ok = ok & ~unsolved
+            # ... and on qd0's own root: Newton's method started at qd0's dependent velocities. Two
+            # converged roots agree to rounding (eps times the Jacobian's condition) if they are the
+            # same root, and differ by the distance between roots if not: √eps of the velocity scale
+            own = self.split.velocities(q, v, t, params, part, self.split.dependent_of(qd, part))
+            scale = jnp.max(jnp.abs(qd)) + jnp.finfo(q.dtype).tiny
+            same = jnp.all(jnp.abs(solved - own) <= jnp.sqrt(jnp.finfo(q.dtype).eps) * scale)
+            other = ok & jnp.all(jnp.isfinite(own)) & ~same
+            status = STATUS.where(other, STATUS.nonlinear_branch, status)
+            ok = ok & ~other
         return ok, status
 
 

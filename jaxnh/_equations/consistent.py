@@ -29,12 +29,30 @@ def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
         return qd
     M, _ = mass_and_velocity_terms(mech, q, qd, t, params)
     L = cholesky(M)
-    for _ in range(iterations if mech.nonlinear_constraints else 1):
+    if not mech.nonlinear_constraints:  # one step: c is affine in the velocities
         A, _ = constraint_terms(mech, q, qd, t, params)
-        c = mech.constraint(q, qd, t, params)
         W = solve_lower(L, A.T)
-        mu = solve_psd_min_norm(mm(W.T, W), c)
-        qd = qd - solve_upper_t(L, mm(W, mu))
+        mu = solve_psd_min_norm(mm(W.T, W), mech.constraint(q, qd, t, params))
+        return qd - solve_upper_t(L, mm(W, mu))
+    # Newton's method on the optimality conditions of min ½ (x − qd)ᵀ M (x − qd) s.t. c(x) = 0:
+    # M (x − qd) + Aᵀ μ = 0 and c(x) = 0, with the Hessian of the Lagrangian H = M + Σ μ_i ∇²c_i.
+    # Each step solves [H Aᵀ; A 0] [Δ; μ'] = −[M (x − qd); c(x)] by H = L_H L_Hᵀ:
+    # (A H⁻¹ Aᵀ) μ' = c − A H⁻¹ M (x − qd), Δ = −H⁻¹ (M (x − qd) + Aᵀ μ'). The first step (μ = 0,
+    # x = qd) is the projection of the linearised constraint; then convergence is quadratic to the
+    # point of c = 0 nearest qd (a Gauss–Newton step from each iterate alone would stop at *a*
+    # point of c = 0, off the nearest by the constraint's curvature times the move squared).
+    x = qd
+    mu = jnp.zeros((mech.n_constraints(q, qd, t, params),), qd.dtype)
+    for _ in range(iterations):
+        A, _ = constraint_terms(mech, q, x, t, params)
+        c = mech.constraint(q, x, t, params)
+        curvature = jax.hessian(lambda u: jnp.dot(mu, mech.constraint(q, u, t, params)))(x)
+        LH = cholesky(M + curvature)
+        W = solve_lower(LH, A.T)
+        g = solve_lower(LH, mm(M, x - qd))
+        mu = solve_psd_min_norm(mm(W.T, W), c - mm(W.T, g))
+        x = x - solve_upper_t(LH, g + mm(W, mu))
+    qd = x
     if mech.nonlinear_constraints:
         A, _ = constraint_terms(mech, q, qd, t, params)
         c = jax.lax.stop_gradient(mech.constraint(q, qd, t, params))

@@ -296,10 +296,24 @@ class VelocitySplit(eqx.Module):
         """The independent velocities v (k,) picked out of qd (s,)."""
         return select(qd, part, self.k)[0]
 
+    def dependent_of(self, qd: jax.Array, part: Partition) -> jax.Array:
+        """The dependent velocities (m,) picked out of qd (s,)."""
+        return select(qd, part, self.k)[1]
+
     def velocities(
-        self, q: jax.Array, v: jax.Array, t: jax.typing.ArrayLike, params: PyTree, part: Partition
+        self,
+        q: jax.Array,
+        v: jax.Array,
+        t: jax.typing.ArrayLike,
+        params: PyTree,
+        part: Partition,
+        start: Optional[jax.Array] = None,
     ) -> jax.Array:
-        """All velocities qd (s,) satisfying the constraints, from independent v (k,)."""
+        """All velocities qd (s,) satisfying the constraints, from independent v (k,).
+
+        For constraints nonlinear in the velocities, Newton's method starts at `start` (the
+        dependent velocities (m,) of a known nearby state: it then stays on that state's root)
+        or, without one, at zero."""
         if self.m == 0:
             return place(v, v[:0], part)
         if not self.mech.nonlinear_constraints:
@@ -308,24 +322,33 @@ class VelocitySplit(eqx.Module):
         def c_dep(x):
             return self.mech.constraint(q, place(v, x, part), t, params)
 
-        x = jnp.zeros((self.m,), v.dtype)
+        x = jnp.zeros((self.m,), v.dtype) if start is None else jax.lax.stop_gradient(start).astype(v.dtype)
         for _ in range(NEWTON_ITERATIONS):
             value, jacobian = value_and_jacfwd(c_dep, x)
             x = x - solve_square(jacobian, value)
         return place(v, _converged(c_dep, x, jacobian), part)
 
     def velocities_and_rates(
-        self, q: jax.Array, v: jax.Array, t: jax.typing.ArrayLike, params: PyTree, part: Partition
+        self,
+        q: jax.Array,
+        v: jax.Array,
+        t: jax.typing.ArrayLike,
+        params: PyTree,
+        part: Partition,
+        start: Optional[jax.Array] = None,
     ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """qd (s,), B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,)."""
+        """qd (s,), B = ∂qd/∂v (s, k) and β = dqd/dt at dv/dt = 0 (s,) (`start`: as for
+        `velocities`)."""
         if self.m == 0:
             B = place(jnp.eye(self.k, dtype=q.dtype), jnp.zeros((0, self.k), q.dtype), part)
             return place(v, v[:0], part), B, jnp.zeros((self.s,), q.dtype)
         if not self.mech.nonlinear_constraints:
             return self._linear(q, v, t, params, part)
-        qd = self.velocities(q, v, t, params, part)
-        B = jax.jacfwd(self.velocities, argnums=1)(q, v, t, params, part)
-        _, beta = jax.jvp(lambda q_, t_: self.velocities(q_, v, t_, params, part), (q, t), (qd, jnp.ones_like(t)))
+        qd = self.velocities(q, v, t, params, part, start)
+        B = jax.jacfwd(self.velocities, argnums=1)(q, v, t, params, part, start)
+        _, beta = jax.jvp(
+            lambda q_, t_: self.velocities(q_, v, t_, params, part, start), (q, t), (qd, jnp.ones_like(t))
+        )
         return qd, B, beta
 
     def _linear_terms(self, q, t, params, part: Partition):
