@@ -31,12 +31,12 @@ class Substituted(Appell):
     has_multipliers = False
     name = "substituted"
 
-    def _independent_accelerations(self, q, v, t, params, part):
+    def _independent_accelerations(self, q, v, t, params, part, start=None):
         mech, split = self.bound_mech, self.split
-        qd, B, beta = split.velocities_and_rates(q, v, t, params, part)
+        qd, B, beta = split.velocities_and_rates(q, v, t, params, part, start)
 
         def T_star(q_, v_, t_):
-            return mech.kinetic(q_, split.velocities(q_, v_, t_, params, part), t_, params)
+            return mech.kinetic(q_, split.velocities(q_, v_, t_, params, part, start), t_, params)
 
         def p_star(q_, v_, t_):
             return jax.grad(T_star, argnums=1)(q_, v_, t_)
