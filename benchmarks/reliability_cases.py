@@ -950,17 +950,23 @@ def run_eager(case: Case) -> Outcome:
         return judge_error(case, e)
     code = _status_code(sol)
     out = judge_solution(case, sol.q, sol.qd, code, sol.message)
-    if code != 0:
-        try:
-            nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=True, **case.kw)
-        except nh.SimulationError as e:
-            if e.status is None or int(np.asarray(e.status._value)) != code:
-                return Outcome(SILENT_WRONG, "throw=True raised with another status")
-        except Exception as e:  # noqa: BLE001
-            return Outcome(UNCLEAR_ERROR, f"throw=True raised {type(e).__name__}: {e}"[:160])
-        else:
-            return Outcome(SILENT_WRONG, "failure status, but throw=True did not raise")
-    return out
+    return throw_agrees(lambda: nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=True, **case.kw), code) or out
+
+
+def throw_agrees(call, code: int) -> Optional[Outcome]:
+    """After a failure status `code` with throw=False, the same `call` with throw=True must raise a
+    SimulationError with that status: None when it does (or the status is success), else the outcome."""
+    if code == 0:
+        return None
+    try:
+        call()
+    except nh.SimulationError as e:
+        if e.status is None or int(np.asarray(e.status._value)) != code:
+            return Outcome(SILENT_WRONG, "throw=True raised with another status")
+        return None
+    except Exception as e:  # noqa: BLE001
+        return Outcome(UNCLEAR_ERROR, f"throw=True raised {type(e).__name__}: {e}"[:160])
+    return Outcome(SILENT_WRONG, "failure status, but throw=True did not raise")
 
 
 _JITTED: dict = {}

@@ -397,17 +397,8 @@ def run_eager(case: PCase, variant) -> R.Outcome:
         return R.judge_error(case, e)  # pyright: ignore[reportArgumentType]
     code = R._status_code(sol)
     out = judge_motion(case, sol.q, sol.qd, code, sol.message)
-    if code != 0:
-        try:
-            nh.simulate(mech, p, case.q0, case.qd0, case.ts, method=variant[1], throw=True, **case.kw)
-        except nh.SimulationError as e:
-            if e.status is None or int(np.asarray(e.status._value)) != code:
-                return R.Outcome(R.SILENT_WRONG, "throw=True raised with another status")
-        except Exception as e:  # noqa: BLE001
-            return R.Outcome(R.UNCLEAR_ERROR, f"throw=True raised {type(e).__name__}: {e}"[:160])
-        else:
-            return R.Outcome(R.SILENT_WRONG, "failure status, but throw=True did not raise")
-    return out
+    again = lambda: nh.simulate(mech, p, case.q0, case.qd0, case.ts, method=variant[1], throw=True, **case.kw)  # noqa: E731
+    return R.throw_agrees(again, code) or out
 
 
 @functools.lru_cache(maxsize=None)
