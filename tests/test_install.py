@@ -1,8 +1,8 @@
 """The source distribution installs and carries its own tests.
 
 Builds the sdist (and from it the wheel, as `python -m build` does) from a copy of this source
-tree, installs the wheel into a fresh virtual environment, runs `jaxnh --version` there from a
-folder outside any source tree, and collects the unpacked sdist's own tests with that
+tree, installs the wheel into a fresh virtual environment, runs `jaxnh --version` and
+`jaxnh demo --no-fit` there from a folder outside any source tree, and collects the unpacked sdist's own tests with that
 environment's Python, with no collection error; two quick tests run in the sdist too: its
 documentation points only at files the sdist holds, and its package keeps its layers.
 
@@ -131,6 +131,11 @@ def test_sdist_installs_and_collects_its_own_tests(tmp_path):
     where, n = out.stdout.split()
     assert where.startswith(str(venv)), where  # the installed copy, not a source tree
     assert int(n) > 0  # the package data (the embedded record) was installed
+    # the demo from the installed command: derivations and simulations on the embedded record,
+    # its figures written (the fit, minutes of compilation, is the README's `make demo`)
+    demo = tmp_path / "outside" / "demo"
+    out = _run([str(venv / "bin" / "jaxnh"), "demo", "--no-fit", "--out", str(demo)], demo.parent, env, timeout=600)
+    assert any(demo.glob("*.png")), out.stdout + out.stderr
 
     # 4. the sdist's own tests: collected without error, with the installed jaxnh (-P: not the sdist's folder)
     pytest_cmd = [python, "-P", "-m", "pytest", "-o", "addopts=", "-p", "no:cacheprovider"]  # not the -n 2 of pyproject
