@@ -5,7 +5,13 @@ stale with any other edit (the docs' performance page and `make bench-stale` rel
 
 from __future__ import annotations
 
-from benchmarks.common import _executable, source_digest
+import os
+import sys
+
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository, for benchmarks/
+
+from benchmarks.common import _executable, source_digest  # noqa: E402
 
 
 BASE = '''
