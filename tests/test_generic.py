@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
+from jaxnh._equations.split import best_partition
 from jaxnh._equations.terms import mass_and_velocity_terms
 
 
@@ -165,6 +166,33 @@ def test_singular_split_is_refused():
     q, qd, t = random_state(jax.random.PRNGKey(5))
     with pytest.raises(ValueError, match=r"independent=\(1, 3\).*singular"):
         nh.accelerations(MECH, q, qd, t, P, method="appell", independent=(1, 3))
+
+
+def test_automatic_split_of_many_constraints_is_not_refused():
+    """A chain of m = 90 equal speeds (qd_k+1 = qd_k, unit masses): every block of m columns of its
+    row-normalised A is well conditioned (smallest singular value 0.012), but the block's volume
+    (its determinant, 2^(−m/2) = 2.8e-14) is below any fixed threshold that also catches a block
+    singular to rounding (1e3 eps = 2.2e-13). The check judges the smallest singular value."""
+    m = 90
+
+    def T(q, qd, t, p):
+        return 0.5 * jnp.sum(qd**2)
+
+    def c(q, qd, t, p):
+        return qd[1:] - qd[:-1]
+
+    mech = nh.Mechanism(T, constraints=c)
+    q, qd = jnp.zeros(m + 1), jnp.ones(m + 1)
+    _, volume = best_partition(mech, q, qd, 0.0, None, m + 1, m)
+    assert float(volume) < 1e3 * np.finfo(np.float64).eps  # the case a volume test would refuse
+    ok, status = jax.jit(lambda q, qd: nh.Appell().bind(mech, m + 1, m).check(q, qd, 0.0, None))(q, qd)
+    assert bool(ok) and status == nh.STATUS.successful
+    # a block singular to rounding still is refused: one of the m equalities written twice
+    twice = nh.Mechanism(
+        T, constraints=lambda q, qd, t, p: jnp.concatenate([c(q, qd, t, p)[:-1], c(q, qd, t, p)[-2:-1]])
+    )
+    ok, status = nh.Appell().bind(twice, m + 1, m).check(q, qd, 0.0, None)
+    assert not bool(ok) and status == nh.STATUS.singular_split
 
 
 @pytest.mark.slow

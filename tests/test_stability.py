@@ -19,6 +19,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxnh as nh
+from jaxnh._solve import diagnose
 from jaxnh.models import variator as V
 from jaxnh.profiles import Profile
 
@@ -413,6 +414,51 @@ def test_stiff_damping_explicit_solver_fails_with_advice(stiff):
     assert "implicit solver" in sol.message and "Kvaerno5" in sol.message
     # after the failure time the output is not a plausible number
     assert not np.all(np.isfinite(np.asarray(sol.q)))
+
+
+@pytest.mark.parametrize(
+    "adjoint", [diffrax.RecursiveCheckpointAdjoint(), nh.ForwardSensitivity(error_control=False)], ids=type
+)
+def test_stiffness_is_judged_where_a_derivative_is_taken(adjoint):
+    """The `stiff` status concerns derivatives only: the values of an explicit method held back by
+    stability are right (its error control sees to them), its derivatives through those steps are not.
+    A plain solve therefore neither compiles nor runs the check (stats["stiffness"] is NaN: not
+    measured), and every way of taking a derivative measures it and reports `stiff`: grad, jit(grad),
+    grad of a jitted function (the jit is traced before the derivative), jacfwd or jacrev.
+
+    Damping at 3000 /s over 0.5 s: Tsit5 is stable for h·rate ≲ 3.3, so it takes ≈ 450 steps where
+    accuracy alone would take a few dozen, and step × spectral radius ≈ 3 > STIFF_ABOVE (1.5)."""
+    p = damped_params(3e3)
+    ts = jnp.linspace(0.0, 0.5, 11)
+    u0 = float(p["v"].U21(ts[0]))
+
+    def solve(w):
+        qd0 = w * jnp.array([1.0, u0])
+        sol = nh.simulate(MECH, p, jnp.zeros(2), qd0, ts, method="lagrange", adjoint=adjoint, throw=False)
+        return sol.qd[-1, 0], sol
+
+    value, sol = solve(W0)
+    assert bool(sol.success), sol.message
+    assert np.isnan(float(sol.stats["stiffness"]))
+    assert np.isfinite(float(value))
+
+    def loss(w):
+        v, sol = solve(w)
+        return v, (sol.status, sol.stats["stiffness"])
+
+    ways = {
+        "grad": jax.grad(loss, has_aux=True),
+        "jit(grad)": jax.jit(jax.grad(loss, has_aux=True)),
+        "grad(jit)": jax.grad(jax.jit(loss), has_aux=True),
+    }
+    if isinstance(adjoint, nh.ForwardSensitivity):  # (a reverse-mode adjoint refuses forward mode, with a message)
+        ways["jacfwd"] = jax.jacfwd(loss, has_aux=True)
+    else:
+        ways["jacrev"] = jax.jacrev(loss, has_aux=True)
+    for name, f in ways.items():
+        _, (status, ratio) = f(W0)
+        assert status == nh.STATUS.stiff, (name, status)
+        assert float(ratio) > diagnose.STIFF_ABOVE, (name, float(ratio))
 
 
 def test_stiff_damping_implicit_solver(stiff):

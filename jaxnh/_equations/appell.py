@@ -48,6 +48,7 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.base import Formulation, multipliers_from_accelerations
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._equations.split import (
+    best_block_margin,
     best_partition,
     block_determinant,
     constraint_matrix,
@@ -167,9 +168,8 @@ class Appell(Formulation):
         if self.m == 0:
             return jnp.asarray(True), STATUS.successful  # pyright: ignore[reportReturnType]
         tiny = 1e3 * jnp.finfo(q.dtype).eps
-        if self.traced:
-            _, vol = best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)
-            ok = vol > tiny
+        if self.traced:  # the best block singular to rounding: smallest singular value below 1e3 eps
+            ok = best_block_margin(self.bound_mech, q, qd, t, params, self.m) > tiny
         else:
             ratio, _, _ = partition_quality(self.bound_mech, q, qd, t, params, self.partition(None), self.s - self.m)
             ok = ratio > tiny

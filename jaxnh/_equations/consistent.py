@@ -53,14 +53,14 @@ def project_velocities(mech: Mechanism, q, qd, t, params, iterations: int = 8):
         mu = solve_psd_min_norm(mm(W.T, W), c - mm(W.T, g))
         x = x - solve_upper_t(LH, g + mm(W, mu))
     qd = x
-    if mech.nonlinear_constraints:
-        A, _ = constraint_terms(mech, q, qd, t, params)
-        c = jax.lax.stop_gradient(mech.constraint(q, qd, t, params))
-        scale = jnp.abs(A) @ jnp.abs(qd) + jnp.abs(mech.constraint(q, jnp.zeros_like(qd), t, params))
-        scale = jax.lax.stop_gradient(scale) + jnp.finfo(qd.dtype).tiny
-        ok = jnp.all(jnp.abs(c) <= jnp.sqrt(jnp.finfo(qd.dtype).eps) * scale)
-        qd = jnp.where(ok, qd, jnp.nan)
-    return qd
+    # (constraints nonlinear in qd here: the affine case returned above) Newton's method must have
+    # converged: each residual within √eps of its scale, else NaN
+    A, _ = constraint_terms(mech, q, qd, t, params)
+    c = jax.lax.stop_gradient(mech.constraint(q, qd, t, params))
+    scale = jnp.abs(A) @ jnp.abs(qd) + jnp.abs(mech.constraint(q, jnp.zeros_like(qd), t, params))
+    scale = jax.lax.stop_gradient(scale) + jnp.finfo(qd.dtype).tiny
+    ok = jnp.all(jnp.abs(c) <= jnp.sqrt(jnp.finfo(qd.dtype).eps) * scale)
+    return jnp.where(ok, qd, jnp.nan)
 
 
 def consistent_velocities(

@@ -394,12 +394,13 @@ def scalarized(f: Callable) -> Callable:
         arrays_in = [leaves[i] for i in where]
         closed, out_shape = jax.make_jaxpr(with_arrays, return_shape=True)(*arrays_in)
         biggest, ops = _survey(closed.jaxpr)
-        if biggest > MAX_ENTRIES or ops > MAX_SCALAR_OPS:
-            return f(*args)
+        out_tree = jax.tree_util.tree_structure(out_shape)
+        if biggest > MAX_ENTRIES or ops > MAX_SCALAR_OPS:  # f's own operations, from the trace just made
+            return jax.tree_util.tree_unflatten(out_tree, jcore.jaxpr_as_fun(closed)(*arrays_in))
         consts = [_const_entries(c) for c in closed.consts]
         ins = [_entries(x, v.aval) for x, v in zip(arrays_in, closed.jaxpr.invars)]
         outs = _eval(closed.jaxpr, consts, ins)
         arrays = [_assemble(o, v.aval) for o, v in zip(outs, closed.jaxpr.outvars)]
-        return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out_shape), arrays)
+        return jax.tree_util.tree_unflatten(out_tree, arrays)
 
     return g

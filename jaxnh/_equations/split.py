@@ -131,6 +131,22 @@ def best_dependent(A) -> tuple[jax.Array, jax.Array]:
     return jnp.stack(idx).astype(jnp.int32), vol
 
 
+def best_block_margin(mech: Mechanism, q, qd, t, params, m: int):
+    """The smallest singular value of the best dependent block (the one `best_partition` picks) of
+    the row-normalised, mass-scaled A: how far the automatic split is from a singular block.
+
+    The block's volume (|det|, the product of its singular values) is no such measure: it falls
+    geometrically with m on well-conditioned blocks (a car pulling N trailers: 3e-3, 1e-7 and
+    1e-18 at N = 8, 16 and 32, every block well conditioned), while the smallest singular value
+    does not depend on m. It equals the volume for m = 1 (dimensionless, at most 1)."""
+    A = mass_scaled_matrix(mech, q, qd, t, params)
+    if m == 0:
+        return jnp.ones((), q.dtype)
+    dep, _ = best_dependent(A)
+    D = unit_rows(A)[:, dep]
+    return jnp.linalg.svd(jax.lax.stop_gradient(D), compute_uv=False)[-1]
+
+
 def partition_from_dependent(dep, s: int):
     """The permutation (s,) int32: independent indices ascending, then the dependent ones
     ascending, from the m dependent indices `dep` (in any order).

@@ -21,22 +21,38 @@ import jax.numpy as jnp
 from jaxnh._base.linalg import mm
 
 
-def _momentum(mech, params):
-    """p(q, qd, t) = ∂T/∂qd, the generalized momentum."""
-    return lambda q_, qd_, t_: jax.grad(mech.kinetic, argnums=1)(q_, qd_, t_, params)
+def _along(f, q, qd, t, dqd):
+    """`f(q, qd, t)` and its derivatives along the k velocity directions `dqd` (s, k) and along the
+    motion (q, t) → (q + qd dt, t + dt), in one forward pass over one evaluation of f.
+
+    Returns (f, (k,) + f's shape, f's shape): f's value, its derivatives ∂f/∂qd · dqd_j, and
+    (∂f/∂q) qd + ∂f/∂t. The k + 1 tangents are batched (`vmap` of `jvp`): f and, for a gradient f,
+    its reverse pass, are traced and evaluated once, not once per quantity."""
+    k = dqd.shape[1]
+    t = jnp.asarray(t)
+    if not jnp.issubdtype(t.dtype, jnp.inexact):  # (an integer time has no tangent)
+        t = t.astype(q.dtype)
+    tq = jnp.concatenate([jnp.zeros((k, q.shape[0]), q.dtype), qd[None, :].astype(q.dtype)])
+    tqd = jnp.concatenate([dqd.T.astype(qd.dtype), jnp.zeros((1, qd.shape[0]), qd.dtype)])
+    tt = jnp.concatenate([jnp.zeros((k,), t.dtype), jnp.ones((1,), t.dtype)])
+
+    def push(a, b, c):
+        return jax.jvp(f, (q, qd, t), (a, b, c))
+
+    value, d = jax.vmap(push, out_axes=(None, 0))(tq, tqd, tt)
+    return value, jax.tree_util.tree_map(lambda x: x[:k], d), jax.tree_util.tree_map(lambda x: x[k], d)
 
 
-def _velocity_terms(mech, q, qd, t, params):
-    """∂T/∂q and `(∂p/∂q) qd + ∂p/∂t = h + ∂T/∂q` (the momentum pushed forward along the motion)."""
-    momentum = _momentum(mech, params)
-    _, dp = jax.jvp(lambda q_, t_: momentum(q_, qd, t_), (q, t), (qd, jnp.ones_like(t)))
-    return jax.grad(mech.kinetic, argnums=0)(q, qd, t, params), dp
+def _gradients(mech, params):
+    """(q, qd, t) → (∂T/∂q, ∂T/∂qd): the second is the generalized momentum p."""
+    return lambda q_, qd_, t_: jax.grad(mech.kinetic, argnums=(0, 1))(q_, qd_, t_, params)
 
 
 def mass_and_velocity_terms(mech, q, qd, t, params):
-    """Mass matrix M (s, s) and velocity terms h (s,) of the Lagrange expression."""
-    dTdq, dp = _velocity_terms(mech, q, qd, t, params)
-    return jax.jacfwd(_momentum(mech, params), argnums=1)(q, qd, t), dp - dTdq
+    """Mass matrix M (s, s) and velocity terms h (s,) of the Lagrange expression, from one
+    forward pass (s + 1 tangents) over one reverse pass of T."""
+    (dTdq, _), (_, Mt), (_, dp) = _along(_gradients(mech, params), q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype))
+    return Mt.T, dp - dTdq
 
 
 def projected_terms(mech, q, qd, t, params, B, beta):
@@ -48,13 +64,10 @@ def projected_terms(mech, q, qd, t, params, B, beta):
     is formed (for the variator, k = 1 of s = 2).
     """
     k = B.shape[1]
-    momentum = _momentum(mech, params)
-    dTdq, dp = _velocity_terms(mech, q, qd, t, params)
-
-    def along(d):
-        return jax.jvp(lambda v: momentum(q, v, t), (qd,), (d,))[1]
-
-    MD = jax.vmap(along, in_axes=1, out_axes=1)(jnp.concatenate([B, beta[:, None]], axis=1))
+    (dTdq, _), (_, MD), (_, dp) = _along(
+        _gradients(mech, params), q, qd, t, jnp.concatenate([B, beta[:, None]], axis=1)
+    )
+    MD = MD.T
     return mm(B.T, MD[:, :k]), mm(B.T, dp - dTdq + MD[:, k])
 
 
@@ -64,6 +77,5 @@ def constraint_terms(mech, q, qd, t, params):
     def c(q_, qd_, t_):
         return mech.constraint(q_, qd_, t_, params)
 
-    A = jax.jacfwd(c, argnums=1)(q, qd, t)
-    _, b = jax.jvp(lambda q_, t_: c(q_, qd, t_), (q, t), (qd, jnp.ones_like(t)))
-    return A, b
+    _, At, b = _along(c, q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype))
+    return At.T, b

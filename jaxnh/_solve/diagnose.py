@@ -25,7 +25,7 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
 from jaxnh._equations.terms import mass_and_velocity_terms
-from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_ok, nearly_dependent
+from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, mass_matrix_ok, nearly_dependent
 
 
 __all__ = [
@@ -176,11 +176,10 @@ def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
     finite = jnp.all(jnp.isfinite(q)) & jnp.isfinite(t)
     q = jnp.where(finite, q, 0.0)
     qd = jnp.where(finite & jnp.isfinite(qd), qd, 0.0)
-    pd = mass_matrix_ok(form.mech, q, qd, t, params)
+    pd, d1 = mass_matrix_check(form.mech, q, qd, t, params)
     if start is not None:
         q0, qd0, t0 = start
         d0 = _mass_diagonal(form.mech, q0, qd0, t0, params)
-        d1 = _mass_diagonal(form.mech, q, qd, t, params)
         collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
         pd = pd & ~collapsed
     status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)

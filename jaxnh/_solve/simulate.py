@@ -856,8 +856,12 @@ def _run_traced(
         result = diagnose_stall(form_, y_, t_, params_, result, start=no_grad((q0r, qd0r, t0r)))
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
-        # say so (forward sensitivities in the error control are right, and need no check)
-        ratio = _stiffness(*no_grad((form, ys, out_ts, run, stats, t0r)))
+        # say so (forward sensitivities in the error control are right, and need no check). The
+        # values are right either way, so the check is made by the derivative's own rule: a solve
+        # that is not differentiated neither compiles nor runs it (NaN: not measured)
+        ratio = _stiffness(
+            ys, out_ts, **no_grad(dict(form=form, params=run, steps=stats["num_accepted_steps"], t0=t0r))
+        )
         stats["stiffness"] = ratio
         result = STATUS.where((result == STATUS.successful) & (ratio > STIFF_ABOVE), STATUS.stiff, result)
     status = STATUS.where(checked, result, check_status)
@@ -904,11 +908,30 @@ def _explicit(solver) -> bool:
     return not isinstance(inner, diffrax.AbstractImplicitSolver)
 
 
-def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
-    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to `samples` saved states.
+@eqx.filter_custom_jvp
+def _stiffness(ys, ts, *, form, params, steps, t0):
+    """Mean accepted step (s) × median spectral radius of ∂f/∂y (1/s) over up to 8 saved states,
+    or NaN (not measured) where no derivative of the solve is taken.
 
-    A diagnostic that decides the `stiff` status (and is reported as `stats["stiffness"]`); it is
-    computed with derivatives stopped at its inputs, so it has none itself."""
+    A diagnostic that decides the `stiff` status (reported as `stats["stiffness"]`): derivatives
+    through the steps of an explicit method held back by stability are wrong, the values are not.
+    So it is measured only by the derivative rule below, which JAX applies under `grad`, `jacfwd`,
+    `jvp` and `linearize` wherever the saved states `ys` carry a tangent (a `jit` traced before
+    the derivative included), and which returns the measured ratio as its value. It has no
+    derivative itself."""
+    del form, params, steps, t0
+    return jnp.full((), jnp.nan, ts.dtype)
+
+
+@_stiffness.def_jvp
+def _stiffness_jvp(primals, tangents, *, form, params, steps, t0):
+    del tangents
+    ys, ts = no_grad(primals)
+    return _measure_stiffness(form, ys, ts, params, steps, t0), None
+
+
+def _measure_stiffness(form, ys, ts, params, steps, t0, samples: int = 8):
+    """`_stiffness` measured: step × spectral radius (dimensionless)."""
     n = ts.shape[0]
     idx = jnp.unique(jnp.linspace(0, n - 1, min(samples, n)).astype(jnp.int32), size=min(samples, n))
     sub = jax.tree_util.tree_map(lambda x: x[idx], ys)
@@ -919,5 +942,5 @@ def _stiffness(form, ys, ts, params, stats, t0, samples: int = 8):
     )
     rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)
     t_last = jnp.max(jnp.where(jnp.isfinite(ts), ts, t0))
-    h = (t_last - t0) / jnp.maximum(stats["num_accepted_steps"], 1)
+    h = (t_last - t0) / jnp.maximum(steps, 1)
     return jnp.nan_to_num(h * jnp.nanmedian(rho))
