@@ -35,6 +35,7 @@ from hypothesis import strategies as st
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository, for benchmarks/
 
+import jaxnh as nh  # noqa: E402
 from benchmarks import reliability_cases as R  # noqa: E402
 
 
@@ -478,6 +479,31 @@ def test_nonlinear_simulate_eagerly():
                 results.append((c, N.run_eager(c, "appell")))
     nl_expected(results)
     settle(results, "nonlinear, simulate eagerly")
+
+
+def test_nonlinear_partition_switch_keeps_the_motions_root():
+    """A case the family drew (class "start on the far root"): the automatic split starts with
+    phi1' independent, so qd0 (on the far root of the quadratic in phi1') is accepted, and Appell's
+    run later re-chooses the partition. With phi1' dependent, solved from zero at every evaluation,
+    the run went on along the near root (phi1' = +0.88 where the motion has -2.84) with a success
+    status. A switch is now made only to a partition whose solution is the motion's own root.
+    Judged by the family's oracle (1000 × the tolerances asked for) against its SciPy reference."""
+    params = dict(
+        J1=0.03364480789846333, J2=0.00960988617417999, J3=0.010717317564717303, K=-0.006085778941281914,
+        U=0.7780389233345817, dU=0.0, k=0.9498273966451861, tsw=-0.5388112625697897, a1=-0.08562287731021938,
+        a2=-0.3025226443747963, b=0.9154980275693179, w=3.0672805806828327, nl=0.38901946166729084,
+        M1=-0.3923270305301575, M2=0.99999, M3=0.5422641839120221, c1=0.4343233887601689,
+        c2=0.09359267711745468, c3=0.14805178065204855, s3=0.14917604769481055,
+    )  # fmt: skip
+    q0 = np.array([1.9, 1.5246966747582378, 1.1814799364528976])
+    qd0 = np.array([-1.6226220540750451, 14.321877155044449, -1.8986331611752159])
+    ts = np.array([0.58906648015575, 0.93073552063563, 1.00311509169379, 1.34875235052907, 2.21183183982660])
+    ref = N.nl_motion(params, q0, qd0, ts)
+    assert ref is not None and ref[2] < 0  # the motion is on the far root throughout
+    sol = nh.simulate(N.SHAFTS_NL, N._p_call(params), q0, qd0, ts, method="appell", throw=False)
+    case = N.NLCase(cls=NL_FAR, params=params, w0=float(qd0[1]), v3=float(qd0[2]), q0=q0, ts=ts)
+    outcome = R.judge_solution(case, sol.q, sol.qd, R._status_code(sol), sol.message, ref[:2])  # pyright: ignore[reportArgumentType]
+    assert outcome.kind in (R.RIGHT, R.FAILURE), outcome
 
 
 def test_nonlinear_linearize():

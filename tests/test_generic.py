@@ -195,6 +195,37 @@ def test_automatic_split_of_many_constraints_is_not_refused():
     assert not bool(ok) and status == nh.STATUS.singular_split
 
 
+def test_appell_leaving_the_root_of_a_nonlinear_constraint_fails_clearly():
+    """ż² + (x + a) ż − 1 = 0 with a free ẋ = −1: the motion follows the root
+    ż = (−u + √(u² + 4))/2, u = x + a, through u = 0 (Lagrange's run, checked against it). Appell's
+    equations solve for ż by Newton's method from zero, which reaches that root only while u > 0
+    (the other one beyond): the run must stop there with `nonlinear_root_left`, eagerly and under
+    jit, not go on along the other root. Tolerance of Lagrange's answer: rtol 1e-8 over 3 s, a
+    smooth motion of size 1: 1e-6."""
+
+    def T(q, qd, t, p):
+        return 0.5 * (qd[0] ** 2 + qd[1] ** 2)
+
+    def c(q, qd, t, p):
+        return jnp.stack([qd[1] ** 2 + (q[0] + p) * qd[1] - 1.0])
+
+    mech = nh.Mechanism(T, constraints=c, nonlinear_constraints=True, independent=(0,))
+    a = 0.3
+    root = lambda u: (-u + np.sqrt(u * u + 4.0)) / 2  # noqa: E731
+    q0, qd0 = jnp.array([1.0, 0.0]), jnp.array([-1.0, root(1.0 + a)])
+    ts = jnp.linspace(0.0, 3.0, 31)
+    lag = nh.simulate(mech, a, q0, qd0, ts, method="lagrange")
+    x = 1.0 - np.asarray(ts)
+    np.testing.assert_allclose(lag.q[:, 0], x, atol=1e-6)
+    np.testing.assert_allclose(lag.qd[:, 1], root(x + a), atol=1e-6)
+    sol = nh.simulate(mech, a, q0, qd0, ts, method="appell", throw=False)
+    assert sol.status == nh.STATUS.nonlinear_root_left, sol.message
+    jitted = jax.jit(lambda p: nh.simulate(mech, p, q0, qd0, ts, method="appell", throw=False).status)(a)
+    assert jitted == nh.STATUS.nonlinear_root_left
+    with pytest.raises(nh.SimulationError, match="method='lagrange'"):
+        nh.simulate(mech, a, q0, qd0, ts, method="appell")
+
+
 @pytest.mark.slow
 def test_nonlinear_constraint_by_chetaev_conserves_energy_and_formulations_agree():
     """A point whose speed in the plane is tied to a rotor: qd2 = sqrt(qd0² + qd1²).

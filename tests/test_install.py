@@ -1,10 +1,12 @@
 """The source distribution installs and carries its own tests.
 
 Builds the sdist (and from it the wheel, as `python -m build` does) from a copy of this source
-tree, installs the wheel into a fresh virtual environment, runs `jaxnh --version` and
-`jaxnh demo --no-fit` there from a folder outside any source tree, and collects the unpacked sdist's own tests with that
-environment's Python, with no collection error; two quick tests run in the sdist too: its
-documentation points only at files the sdist holds, and its package keeps its layers.
+tree, installs the wheel into a fresh virtual environment, runs `jaxnh --version`,
+`jaxnh demo --no-fit`, the README's example and `jaxnh design` without matplotlib (the smallest
+design: minutes of compilation) there from a folder outside any source tree, and collects the
+unpacked sdist's own tests with that environment's Python, with no collection error; two quick
+tests run in the sdist too: its documentation points only at files the sdist holds, and its
+package keeps its layers.
 
 Nothing is downloaded but the build backend (setuptools, through pip's cache): the fresh
 environment sees the dependencies of the environment running this test through a `.pth` file
@@ -13,6 +15,7 @@ there finds only the newly installed copy.
 """
 
 import glob
+import json
 import os
 import re
 import shutil
@@ -136,6 +139,20 @@ def test_sdist_installs_and_collects_its_own_tests(tmp_path):
     demo = tmp_path / "outside" / "demo"
     out = _run([str(venv / "bin" / "jaxnh"), "demo", "--no-fit", "--out", str(demo)], demo.parent, env, timeout=600)
     assert any(demo.glob("*.png")), out.stdout + out.stderr
+    # the README's example, as a user pastes it into the installed environment
+    example = re.findall(r"```python\n(.*?)```", open(os.path.join(ROOT, "README.md")).read(), re.S)[0]
+    out = _run([python, "-P", "-c", example], tmp_path / "outside", env, timeout=600)
+    assert "success" in out.stdout, out.stdout + out.stderr
+    # `jaxnh design` without the plot extra (matplotlib made unimportable), smallest settings: it writes
+    # its CSV and JSON, says that it draws no figure, and exits by its documented statuses
+    no_plot = "import sys\nsys.modules['matplotlib'] = None\nfrom jaxnh.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    design = [python, "-P", "-c", no_plot, "design", "--out", "d", "--starts", "1", "--steps", "1", "--harmonics", "1"]
+    proc = subprocess.run(design, cwd=tmp_path / "outside", env=env, capture_output=True, text=True, timeout=1800)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    rep = json.loads((tmp_path / "outside" / "d" / "design.json").read_text())
+    assert proc.returncode == (0 if rep["check"]["feasible"] else 1), proc.stdout + proc.stderr
+    assert sorted(os.listdir(tmp_path / "outside" / "d")) == ["design.json", "designed_input.csv"]
+    assert "matplotlib is not installed: design.png is not drawn" in proc.stderr
 
     # 4. the sdist's own tests: collected without error, with the installed jaxnh (-P: not the sdist's folder)
     pytest_cmd = [python, "-P", "-m", "pytest", "-o", "addopts=", "-p", "no:cacheprovider"]  # not the -n 2 of pyproject

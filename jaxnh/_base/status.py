@@ -92,6 +92,14 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "quadratic constraint). Use method='lagrange', which integrates all velocities and stays on "
         "qd0's root, or write the constraints so that qd0's root is the one nearest zero."
     )
+    nonlinear_root_left = (
+        "During the run, the dependent velocities that method='appell' solves for left the root of the "
+        "constraints nonlinear in the velocities that the motion follows: its state holds the independent "
+        "velocities only, and Newton's method started from zero reached another root (or none) at the "
+        "end of a step, not the continuation of the root at its start. Use method='lagrange', which "
+        "integrates all velocities and follows the motion's root, or write the constraints so that the "
+        "motion's root is the one nearest zero throughout."
+    )
     holonomic_violated = (
         "The initial coordinates q0 do not satisfy the holonomic constraints g(q0, t0) = 0 (to √eps of "
         "their scale). The holonomic constraints are imposed on the velocities, so a q0 off g = 0 "

@@ -39,6 +39,7 @@ import dataclasses
 import functools
 from typing import Optional
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -194,6 +195,13 @@ class Appell(Formulation):
         return ok, status
 
 
+LEFT_ROOT = diffrax.RESULTS.breakdown
+"""The step maps' failure (a diffrax result) for a run whose dependent velocities left the root
+of constraints nonlinear in the velocities that the motion follows; `simulate` reports it as
+`STATUS.nonlinear_root_left`. (No diffrax solve of these equations gives `breakdown` itself: it
+comes from lineax's iterative linear solvers, which diffrax's solvers do not use here.)"""
+
+
 class _Partitioning(StepMaps):
     """Watch (and, with `switch`, re-choose) the partition around every step.
 
@@ -220,18 +228,44 @@ class _Partitioning(StepMaps):
         qd = f.split.velocities(q, v, t, params, perm)
         ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
         switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
-        new = jnp.where(switch, best, perm)
         k = f.s - f.m
+        if f.mech.nonlinear_constraints:
+            # the new dependent velocities are solved from zero at every evaluation: switch only to a
+            # partition whose solution is the motion's root (qd), not another root of the constraints
+            qd_best = f.split.velocities(q, select(qd, best, k)[0], t, params, best)
+            scale = jnp.max(jnp.abs(qd)) + jnp.finfo(qd.dtype).tiny
+            switch = switch & jnp.all(jnp.abs(qd_best - qd) <= jnp.sqrt(jnp.finfo(qd.dtype).eps) * scale)
+        new = jnp.where(switch, best, perm)
         v_new = jnp.where(switch, select(qd, new, k)[0], v)
         return jnp.concatenate([q, v_new, new[k:].astype(y.dtype)]), switch
 
     def post(self, t0, y0, t1, y1, args):
         f, params, ok = args
         crossed = scalarized(functools.partial(self._crossed, f))(t0, y0, t1, y1, params, ok)
-        if self.switch:
-            return y1, None, crossed, False
         # a fixed partition cannot be changed: passing through a singular block fails the solve
-        return y1, None, False, crossed
+        reject, singular = (crossed, False) if self.switch else (False, crossed)
+        if not f.mech.nonlinear_constraints:
+            return y1, None, reject, singular
+        left = scalarized(functools.partial(self._left_root, f))(t0, y0, t1, y1, params, ok)
+        # (equinox types Enumerations as enum.Enum: RESULTS, inheriting from optimistix, looks like its)
+        fail = diffrax.RESULTS.where(singular, diffrax.RESULTS.singular, diffrax.RESULTS.successful)  # pyright: ignore[reportArgumentType]
+        fail = diffrax.RESULTS.where(left, LEFT_ROOT, fail)  # pyright: ignore[reportArgumentType]
+        return y1, None, reject, fail
+
+    @staticmethod
+    def _left_root(f, t0, y0, t1, y1, params, ok):
+        """Whether, at the end of the step, the dependent velocities the equations solve for (Newton's
+        method from zero, at every evaluation) are no longer the continuation of those at its start
+        (Newton's method at the end state started from them): the motion's root of constraints
+        nonlinear in the velocities has been left for another one, or for none."""
+        part = f.partition(y1)
+        q1, v1, _ = f.parts(y1)
+        followed = f.split.velocities(q1, v1, t1, params, part, f.split.dependent_of(f.unpack(y0, t0, params)[1], part))
+        solved = f.split.velocities(q1, v1, t1, params, part)
+        # two converged solutions of one root agree to rounding; distinct roots differ by their distance
+        scale = jnp.max(jnp.abs(followed)) + jnp.finfo(followed.dtype).tiny
+        same = jnp.all(jnp.abs(solved - followed) <= jnp.sqrt(jnp.finfo(followed.dtype).eps) * scale)
+        return ~same & jnp.all(jnp.isfinite(followed)) & ok
 
     @staticmethod
     def _crossed(f, t0, y0, t1, y1, params, ok):

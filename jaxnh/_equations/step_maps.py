@@ -33,7 +33,8 @@ class StepMaps(eqx.Module):
     `post(t0, y0, t1, y1, args) -> (y1, correction, reject, fail)`: the state a
     step ends at; `correction` (like y, or None) is added to the error estimate;
     `reject` (bool) forces a rejection; `fail` (bool) stops the solve as failed
-    (diffrax's `RESULTS.singular`, which the formulation explains). A map that
+    (diffrax's `RESULTS.singular`, which the formulation explains), or is itself the
+    `diffrax.RESULTS` item to stop with (`RESULTS.successful`: no failure). A map that
     can never reject, or never fail, returns the Python `False` there: the
     integrator then leaves that test out of the step.
 

@@ -842,6 +842,8 @@ def _run_traced(
     result = STATUS.where(result == STATUS.event_occurred, STATUS.successful, result)  # pyright: ignore[reportArgumentType]
     if isinstance(form, Appell):
         result = STATUS.where(result == STATUS.singular, STATUS.singular_split, result)
+        if form.bound_mech.nonlinear_constraints:  # (`appell.LEFT_ROOT`, from its step maps)
+            result = STATUS.where(result == STATUS.breakdown, STATUS.nonlinear_root_left, result)
     if diagnose:
         # the state to diagnose: where the solve stopped, or the first report whose motion is not
         # finite (a dependent velocity through a singular block is infinite at that report only)
@@ -937,7 +939,7 @@ def _measure_stiffness(form, ys, ts, params, steps, t0, samples: int = 8):
     sub = jax.tree_util.tree_map(lambda x: x[idx], ys)
     tsub = ts[idx]
     ok = jnp.isfinite(tsub)
-    rho = jax.vmap(lambda y, t: spectral_radius(form, y, t, params))(
+    rho = jax.vmap(lambda y, t: spectral_radius(lambda t_, y_: _vector_field(t_, y_, form, params), y, t))(
         jax.tree_util.tree_map(lambda x: jnp.where(bcast(ok, x), x, 0.0), sub), jnp.where(ok, tsub, t0)
     )
     rho = jnp.where(ok & jnp.isfinite(rho), rho, jnp.nan)

@@ -73,7 +73,10 @@ class Solution(eqx.Module):
             stages per step times attempted steps), `max_steps`, and for
             explicit solvers whose sensitivities are not in the error
             control `stiffness` (mean step × spectral radius of the field's
-            Jacobian, dimensionless; above 1.5 the status is `stiff`).
+            Jacobian, dimensionless; above 1.5 the status is `stiff`). It
+            concerns derivatives only (the values of such a solve are right),
+            so it is measured where the solve is differentiated (`grad`,
+            `jacfwd`, `jvp`, also of a jitted function) and is NaN otherwise.
             Counts and diagnostics: they carry no derivatives.
         status: `jaxnh.STATUS` item (diffrax's `RESULTS` extended):
             `STATUS.successful`, or why the solve failed. After a failure the

@@ -164,7 +164,10 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
             )
         if fail is not False:
             # (equinox types Enumerations as enum.Enum: RESULTS, inheriting from optimistix, looks like its)
-            result = diffrax.RESULTS.where(fail, diffrax.RESULTS.singular, result)  # pyright: ignore[reportArgumentType]
+            if isinstance(fail, type(diffrax.RESULTS.successful)):  # the failure itself (successful: none)
+                result = diffrax.RESULTS.where(fail == diffrax.RESULTS.successful, result, fail)  # pyright: ignore[reportArgumentType]
+            else:
+                result = diffrax.RESULTS.where(fail, diffrax.RESULTS.singular, result)  # pyright: ignore[reportArgumentType]
         return y1_mapped, y_error, dense_info, solver_state, result
 
     def func(self, terms: Any, t0: Any, y0: Any, args: Any) -> Any:
