@@ -33,19 +33,22 @@ def qd0(p, w=1.0):
     return jnp.stack([w, w * p.U21(0.0)])
 
 
-def test_default_solver_by_tolerance_size_and_method():
+def test_default_solver_by_tolerance_and_size():
     loose, tight = 10 * DOP853_BELOW_RTOL, DOP853_BELOW_RTOL / 10
     assert isinstance(default_solver(loose, method="appell"), Tsit5)
     assert isinstance(default_solver(loose, UNROLL_MAX_OPERATIONS, "appell"), Tsit5)
     assert isinstance(default_solver(tight, method="appell"), diffrax.Dopri8)
     assert isinstance(default_solver(tight, 10**5, "appell"), diffrax.Dopri8)
-    # large vector fields and lagrange: diffrax's looped Tsit5 only at loose tolerances, Dopri8 below
+    # small fields: the same choice in every form
+    for method in ("lagrange", "appell", "substituted"):
+        assert isinstance(default_solver(loose, 10, method), Tsit5)
+        assert isinstance(default_solver(tight, 10, method), diffrax.Dopri8)
+    # large vector fields: diffrax's looped Tsit5 only at loose tolerances, Dopri8 below
     looser, mid = 10 * DOPRI8_BELOW_RTOL_LOOPED, DOPRI8_BELOW_RTOL_LOOPED / 10
     assert DOPRI8_BELOW_RTOL_LOOPED > DOP853_BELOW_RTOL
-    assert isinstance(default_solver(looser, UNROLL_MAX_OPERATIONS + 1), diffrax.Tsit5)
-    assert isinstance(default_solver(looser, 10, "lagrange"), diffrax.Tsit5)
-    assert isinstance(default_solver(mid, UNROLL_MAX_OPERATIONS + 1), diffrax.Dopri8)
-    assert isinstance(default_solver(mid, 10, "lagrange"), diffrax.Dopri8)
+    for method in ("lagrange", "appell"):
+        assert isinstance(default_solver(looser, UNROLL_MAX_OPERATIONS + 1, method), diffrax.Tsit5)
+        assert isinstance(default_solver(mid, UNROLL_MAX_OPERATIONS + 1, method), diffrax.Dopri8)
     assert isinstance(default_solver(mid, method="appell"), Tsit5)
 
 

@@ -187,9 +187,7 @@ class Appell(Formulation):
             # converged roots agree to rounding (eps times the Jacobian's condition) if they are the
             # same root, and differ by the distance between roots if not: √eps of the velocity scale
             own = self.split.velocities(q, v, t, params, part, self.split.dependent_of(qd, part))
-            scale = jnp.max(jnp.abs(qd)) + jnp.finfo(q.dtype).tiny
-            same = jnp.all(jnp.abs(solved - own) <= jnp.sqrt(jnp.finfo(q.dtype).eps) * scale)
-            other = ok & jnp.all(jnp.isfinite(own)) & ~same
+            other = ok & jnp.all(jnp.isfinite(own)) & ~same_root(solved, own, qd)
             status = STATUS.where(other, STATUS.nonlinear_branch, status)
             ok = ok & ~other
         return ok, status
@@ -200,6 +198,15 @@ LEFT_ROOT = diffrax.RESULTS.breakdown
 of constraints nonlinear in the velocities that the motion follows; `simulate` reports it as
 `STATUS.nonlinear_root_left`. (No diffrax solve of these equations gives `breakdown` itself: it
 comes from lineax's iterative linear solvers, which diffrax's solvers do not use here.)"""
+
+
+def same_root(a: jax.Array, b: jax.Array, ref: jax.Array) -> jax.Array:
+    """Whether two converged solutions a, b of constraints nonlinear in the velocities are the same
+    root: they agree to √eps of the velocity scale max|ref| (m/s, rad/s). Two Newton solutions of
+    one root agree to rounding (eps times the Jacobian's condition); distinct roots differ by the
+    distance between them."""
+    scale = jnp.max(jnp.abs(ref)) + jnp.finfo(ref.dtype).tiny
+    return jnp.all(jnp.abs(a - b) <= jnp.sqrt(jnp.finfo(ref.dtype).eps) * scale)
 
 
 class _Partitioning(StepMaps):
@@ -233,50 +240,48 @@ class _Partitioning(StepMaps):
             # the new dependent velocities are solved from zero at every evaluation: switch only to a
             # partition whose solution is the motion's root (qd), not another root of the constraints
             qd_best = f.split.velocities(q, select(qd, best, k)[0], t, params, best)
-            scale = jnp.max(jnp.abs(qd)) + jnp.finfo(qd.dtype).tiny
-            switch = switch & jnp.all(jnp.abs(qd_best - qd) <= jnp.sqrt(jnp.finfo(qd.dtype).eps) * scale)
+            switch = switch & same_root(qd_best, qd, qd)
         new = jnp.where(switch, best, perm)
         v_new = jnp.where(switch, select(qd, new, k)[0], v)
         return jnp.concatenate([q, v_new, new[k:].astype(y.dtype)]), switch
 
     def post(self, t0, y0, t1, y1, args):
         f, params, ok = args
-        crossed = scalarized(functools.partial(self._crossed, f))(t0, y0, t1, y1, params, ok)
+        crossed, left = scalarized(functools.partial(self._watch, f))(t0, y0, t1, y1, params, ok)
         # a fixed partition cannot be changed: passing through a singular block fails the solve
         reject, singular = (crossed, False) if self.switch else (False, crossed)
         if not f.mech.nonlinear_constraints:
             return y1, None, reject, singular
-        left = scalarized(functools.partial(self._left_root, f))(t0, y0, t1, y1, params, ok)
         # (equinox types Enumerations as enum.Enum: RESULTS, inheriting from optimistix, looks like its)
         fail = diffrax.RESULTS.where(singular, diffrax.RESULTS.singular, diffrax.RESULTS.successful)  # pyright: ignore[reportArgumentType]
         fail = diffrax.RESULTS.where(left, LEFT_ROOT, fail)  # pyright: ignore[reportArgumentType]
         return y1, None, reject, fail
 
     @staticmethod
-    def _left_root(f, t0, y0, t1, y1, params, ok):
-        """Whether, at the end of the step, the dependent velocities the equations solve for (Newton's
-        method from zero, at every evaluation) are no longer the continuation of those at its start
-        (Newton's method at the end state started from them): the motion's root of constraints
-        nonlinear in the velocities has been left for another one, or for none."""
-        part = f.partition(y1)
-        q1, v1, _ = f.parts(y1)
-        followed = f.split.velocities(q1, v1, t1, params, part, f.split.dependent_of(f.unpack(y0, t0, params)[1], part))
-        solved = f.split.velocities(q1, v1, t1, params, part)
-        # two converged solutions of one root agree to rounding; distinct roots differ by their distance
-        scale = jnp.max(jnp.abs(followed)) + jnp.finfo(followed.dtype).tiny
-        same = jnp.all(jnp.abs(solved - followed) <= jnp.sqrt(jnp.finfo(followed.dtype).eps) * scale)
-        return ~same & jnp.all(jnp.isfinite(followed)) & ok
+    def _watch(f, t0, y0, t1, y1, params, ok):
+        """(crossed, left) for a step from (t0, y0) to (t1, y1); after a failed initial check (`ok`
+        False: simulate's solve then has zero length, and a user's own diffeqsolve of `ode` gets a
+        zero stand-in) nothing is watched.
 
-    @staticmethod
-    def _crossed(f, t0, y0, t1, y1, params, ok):
-        """Whether the dependent block's determinant changed sign (or became non-finite) in the step."""
+        crossed: the dependent block's determinant changed sign (or became non-finite) in the step.
+        left (constraints nonlinear in the velocities only, else False): at the end of the step the
+        dependent velocities the equations solve for (Newton's method from zero, at every
+        evaluation) are no longer the continuation of those at its start (Newton's method at the
+        end state started from them): the motion's root has been left for another one, or for none.
+        """
         part = f.partition(y1)
-        det = []
+        nonlinear = f.mech.nonlinear_constraints
+        qds, det = [], []
         for y, t in ((y0, t0), (y1, t1)):
-            # A = ∂c/∂qd does not depend on qd for linear constraints: skip the velocity solve
             q = f.parts(y)[0]
-            qd = f.unpack(y, t, params)[1] if f.mech.nonlinear_constraints else jnp.zeros_like(q)
+            # A = ∂c/∂qd does not depend on qd for linear constraints: no velocity solve
+            qd = f.unpack(y, t, params)[1] if nonlinear else jnp.zeros_like(q)
+            qds.append(qd)
             det.append(block_determinant(constraint_matrix(f.mech, q, qd, t, params), part, f.s - f.m))
-        # after a failed initial check (`ok` False: simulate's solve then has zero length, and a
-        # user's own diffeqsolve of `ode` gets a zero stand-in) nothing is watched
-        return ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
+        crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & ok
+        if not nonlinear:
+            return crossed, jnp.asarray(False)
+        q1, v1, _ = f.parts(y1)
+        followed = f.split.velocities(q1, v1, t1, params, part, f.split.dependent_of(qds[0], part))
+        left = ~same_root(qds[1], followed, followed) & jnp.all(jnp.isfinite(followed)) & ok
+        return crossed, left

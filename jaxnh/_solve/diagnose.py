@@ -25,7 +25,7 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
 from jaxnh._equations.terms import mass_and_velocity_terms
-from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, mass_matrix_ok, nearly_dependent
+from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, nearly_dependent
 
 
 __all__ = [
@@ -114,9 +114,10 @@ def _agrees_at(mech, q, qd, t, params):
 
 
 def initial_checks(form, q, qd, t, params):
-    """(ok, STATUS) for the initial state (q, qd) at t of a bound formulation."""
+    """(ok, STATUS, inertias) for the initial state (q, qd) at t of a bound formulation; the
+    inertias (the mass matrix's diagonal, kg·m² or kg) are the reference of `diagnose_stall`."""
     mech = form.mech
-    pd = mass_matrix_ok(mech, q, qd, t, params)
+    pd, inertias = mass_matrix_check(mech, q, qd, t, params)
     # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
@@ -152,20 +153,16 @@ def initial_checks(form, q, qd, t, params):
         ):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
-    return ok, status
+    return ok, status, inertias
 
 
-def _mass_diagonal(mech, q, qd, t, params):
-    return jnp.diag(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
-
-
-def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
+def diagnose_stall(form, y, t, params, status, start_inertias: Optional[jax.Array] = None):
     """The status of a failed solve, refined by what is wrong at the last state reached.
 
     A solve that stalls (step limit, step size collapse) where the equations
     themselves break down says so: a mass matrix that is no longer positive
     definite, or whose diagonal (an inertia) has fallen below √eps of its value
-    at the start `start = (q0, qd0, t0)` (the step before the breakdown), or
+    at the start, `start_inertias` (from `initial_checks`: the step before the breakdown), or
     (Appell's equations with a fixed partition) a dependent block that has
     become singular.
     """
@@ -177,10 +174,8 @@ def diagnose_stall(form, y, t, params, status, start: Optional[tuple] = None):
     q = jnp.where(finite, q, 0.0)
     qd = jnp.where(finite & jnp.isfinite(qd), qd, 0.0)
     pd, d1 = mass_matrix_check(form.mech, q, qd, t, params)
-    if start is not None:
-        q0, qd0, t0 = start
-        d0 = _mass_diagonal(form.mech, q0, qd0, t0, params)
-        collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(d0))
+    if start_inertias is not None:
+        collapsed = jnp.any(d1 < jnp.sqrt(jnp.finfo(q.dtype).eps) * jnp.abs(start_inertias))
         pd = pd & ~collapsed
     status = STATUS.where(stalled & finite & ~pd, STATUS.mass_matrix_became_singular, status)
     if isinstance(form, Appell) and form.m and form.bound_mech.nonlinear_constraints:

@@ -63,19 +63,18 @@ DOP853_BELOW_RTOL = 1e-9
 (the name is historical: the 8th-order default is `diffrax.Dopri8`)."""
 
 DOPRI8_BELOW_RTOL_LOOPED = 1e-5
-"""Where jaxnh's unrolled Tsit5 is not used (large vector fields, "lagrange"),
-`default_solver` switches to `diffrax.Dopri8` already below this rtol: both
-diffrax solvers loop over their stages, and on the work-precision benchmarks
-Dopri8 was the faster of the two at every error below ≈ 1e-5 (10-coordinate
-mechanism, both forms; variator, Lagrange form: benchmarks/RESULTS.md,
-"Default solver")."""
+"""For large vector fields (where jaxnh's unrolled Tsit5 is not used), `default_solver`
+switches to `diffrax.Dopri8` already below this rtol: both diffrax solvers loop over
+their stages, and on the work-precision benchmarks Dopri8 was the faster of the two at
+every error below ≈ 1e-5 (10-coordinate mechanism and rolling ball, both forms:
+benchmarks/RESULTS.md, "Work–precision")."""
 
 UNROLL_MAX_OPERATIONS = 300
-"""Vector fields of at most this many JAX operations may get jaxnh's unrolled Tsit5.
+"""Vector fields of at most this many JAX operations get jaxnh's unrolled Tsit5.
 
 An unrolled step holds one copy of the vector field per stage, which XLA
-compiles and schedules separately: for a small mechanism (the variator's
-Appell form) that removes diffrax's per-stage loop overhead; for a large one
+compiles and schedules separately: for a small mechanism (the variator, in
+either form) that removes diffrax's per-stage loop overhead; for a large one
 (a 10-coordinate mechanism, the Whipple bicycle) it multiplied the compile
 time and ran up to 2× slower than diffrax's Tsit5, which loops over its
 stages (benchmarks/RESULTS.md).
@@ -91,19 +90,23 @@ def default_solver(
         rtol: the relative tolerance of the solve.
         operations: size of the vector field in JAX operations
             (`vector_field_operations`); None means small.
-        method: the formulation's name ("lagrange", "appell", "substituted").
+        method: the formulation's name ("lagrange", "appell", "substituted");
+            the choice does not depend on it (kept for callers that pass it).
 
     Returns the fastest choice at matched error on the work-precision
-    benchmarks (benchmarks/RESULTS.md, "Default solver"):
-    * small vector fields (at most `UNROLL_MAX_OPERATIONS`) in the "appell"
-      and "substituted" forms: jaxnh's unrolled 5th-order
-      `jaxnh.solvers.UnrolledTsit5`, and `diffrax.Dopri8` (8th order) for rtol <
-      `DOP853_BELOW_RTOL`;
-    * large vector fields and "lagrange": `diffrax.Tsit5`, and
-      `diffrax.Dopri8` for rtol < `DOPRI8_BELOW_RTOL_LOOPED`.
+    benchmarks (benchmarks/RESULTS.md, "Work–precision"):
+    * small vector fields (at most `UNROLL_MAX_OPERATIONS`), in every form:
+      jaxnh's unrolled 5th-order `jaxnh.solvers.UnrolledTsit5`, and
+      `diffrax.Dopri8` (8th order) for rtol < `DOP853_BELOW_RTOL`. (On the
+      variator at rtol 1e-8, Lagrange's form: 0.38 ms per solve and an error of
+      1.5e-6, against 0.75 ms and 9.5e-7 for Dopri8 and 0.52 ms and 1.5e-6 for
+      diffrax's looped Tsit5.)
+    * large vector fields: `diffrax.Tsit5`, and `diffrax.Dopri8` for rtol <
+      `DOPRI8_BELOW_RTOL_LOOPED`.
     """
+    del method
     small = operations is None or operations <= UNROLL_MAX_OPERATIONS
-    if small and method != "lagrange":
+    if small:
         return diffrax.Dopri8() if rtol < DOP853_BELOW_RTOL else UnrolledTsit5()
     return diffrax.Dopri8() if rtol < DOPRI8_BELOW_RTOL_LOOPED else diffrax.Tsit5()
 
@@ -684,10 +687,10 @@ def _run_traced(
     t0r = tsr[0]
     # the checks and diagnoses below only decide a status: no derivative flows through them, and
     # cutting it at their inputs spares tracing their tangents under jvp/grad (a fit's Jacobian)
-    checked, check_status = initial_checks(*no_grad((form, q0r, qd0r, t0r, run)))
+    checked, check_status, inertias = initial_checks(*no_grad((form, q0r, qd0r, t0r, run)))
     if full is not None:  # the full state first: g(q0) = 0, ġ = 0 and c = 0, on the branch `guess` picks
         qf, qdf = (jnp.where(finite, x, 0.0) for x in inputs)
-        full_ok, full_status = initial_checks(*no_grad((full_form, qf, qdf, t0r, params)))
+        full_ok, full_status, _ = initial_checks(*no_grad((full_form, qf, qdf, t0r, params)))
         branch = on_branch(*no_grad((full, qf, t0r, params)))  # (with a `guess`: the one it reaches)
         full_status = STATUS.where(full_ok & ~branch, STATUS.holonomic_branch, full_status)  # pyright: ignore[reportArgumentType]
         check_status = STATUS.where(full_ok & branch, check_status, full_status)  # pyright: ignore[reportArgumentType]
@@ -855,7 +858,7 @@ def _run_traced(
         t_diag = jnp.where(rows.any(), out_ts[first], t_end)
         result = STATUS.where((result == STATUS.successful) & rows.any(), STATUS.non_finite_output, result)
         form_, y_, t_, params_ = no_grad((form, y_diag, t_diag, run))
-        result = diagnose_stall(form_, y_, t_, params_, result, start=no_grad((q0r, qd0r, t0r)))
+        result = diagnose_stall(form_, y_, t_, params_, result, start_inertias=inertias)
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check). The
