@@ -3,6 +3,7 @@
 # make test-quick — the quick tier: every test not marked slow
 # make test-min   — a separate .venv-min with the oldest declared dependency versions; runs the quick tier
 # make docs       — build the documentation site into site/ (examples executed; strict: warnings fail)
+#                   warm builds reuse executed examples from .cache/docs-exec; JAXNH_DOCS_CACHE=off to re-run all
 # make docs-serve — the same, served with live reload at http://127.0.0.1:8000
 # make lint       — ruff check, ruff format --check, pyright
 # make bench      — run the benchmark suite, regenerate benchmarks/RESULTS.md and figures (1–1.5 h on 2 cores)

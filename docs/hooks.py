@@ -11,22 +11,36 @@
 * Formulas are turned into MathML while the site is built, so they show
   without MathJax or a network connection; a formula the converter cannot
   translate fails the build.
+* Executed examples are cached per page in .cache/docs-exec (see "Cache of
+  executed examples" below); JAXNH_DOCS_CACHE=off runs them all.
 """
 
 from __future__ import annotations
 
+import hashlib
 import html
+import json
 import logging
 import os
 import re
+import subprocess
+import sys
+import tempfile
 import xml.etree.ElementTree as ET
+from collections import Counter
+from importlib import metadata
 from pathlib import Path
+from typing import Any
 
+import markdown_exec
 import standalone  # docs/standalone.py (mkdocs puts the hooks' folder on the path)
 from latex2mathml import commands as _tex_commands
 from latex2mathml.converter import convert as _tex_to_mathml
+from markupsafe import Markup
 from mkdocs.exceptions import PluginError
+from mkdocs.plugins import event_priority
 from mkdocs.structure.files import File
+from mkdocs.utils import CountHandler
 
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,9 +65,125 @@ def on_startup(command, dirty):
     logging.getLogger("griffe").addFilter(_FreeTextRaises())
 
 
+# Cache of executed examples. markdown-exec's plugin sets its `formatter` (runs a block, returns
+# its HTML) as the "format" of pymdownx.superfences custom fences in config.mdx_configs; on_config
+# below runs after it (hooks follow `plugins:`; the priority says so too) and sets `_formatter`.
+# A page's blocks are served from .cache/docs-exec all together, when the page's key matches: a
+# hash of its Markdown (as on_page_markdown gets it: snippets not expanded) and `_build_digest`.
+# Else they all run, and are stored (at the end of the build, if `_build_digest` has not changed)
+# when the page logged no warning (a failing block logs one, so strict builds still fail) and
+# does not depend on the rest of the build: markdown-exec numbers ids `exec-N--` over the whole
+# build (a hit advances `MarkdownConverter.counter` as the run did), puts headings printed by
+# blocks in the ToC (not replayed) and names their modules `_code_block_...`: see `_NOT_STORED`.
+# Sessions are global, so pages sharing a session name are not cached, nor pages with snippets
+# (`--8<--`, none today). Not replayed on a hit: process state a block leaves (jax.config...).
+CACHE_DIR = ROOT / ".cache" / "docs-exec"
+_KEYED = ["jaxnh", "examples", "benchmarks", "docs/*.py", "pyproject.toml", "mkdocs.yml"]
+_NOT_STORED = re.compile(r"<h[1-6][\s>]|\bexec-\d+--|code_block_|&lt;code block: ")
+_SESSION = re.compile(r"""\bsession=["']?([^"'\s}]+)""")
+_log = logging.getLogger("mkdocs.hooks.exec_cache")
+_cache: dict = {"digest": None, "shared": set(), "page": None, "reused": [], "ran": [], "pending": []}
+_warnings = CountHandler(level=logging.WARNING)  # as `mkdocs build --strict` counts them
+
+
+def _build_digest() -> str | None:
+    """Hash of what, beyond a page's Markdown, can change its examples' output; None: no cache."""
+    if os.environ.get("JAXNH_DOCS_CACHE", "on").strip().lower() in {"off", "0", "none", "", "no", "false"}:
+        return None
+    command = ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard", "--", *_KEYED]
+    digest = hashlib.sha256(b"exec-cache 1\0")
+    try:
+        listed = subprocess.run(command, cwd=ROOT, capture_output=True, check=True).stdout.decode()
+        for name in sorted(set(listed.split("\0")) - {""}):
+            path = ROOT / name
+            digest.update(name.encode() + (hashlib.sha256(path.read_bytes()).digest() if path.is_file() else b"-"))
+    except (OSError, subprocess.CalledProcessError):  # no git, or a file it lists cannot be read
+        return None
+    versions = sorted(f"{dist.metadata['Name']}=={dist.version}" for dist in metadata.distributions())
+    env = [f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith(("JAX", "XLA", "MPL", "PYTHON"))]
+    env = [item for item in env if not item.startswith("JAXNH_DOCS_CACHE=")]
+    where = os.path.relpath(os.getcwd(), ROOT)  # blocks open files relative to the working directory
+    digest.update(json.dumps([sys.version, where, versions, env]).encode())
+    return digest.hexdigest()
+
+
+@event_priority(-100)
+def on_config(config):
+    _cache.update(digest=_build_digest(), page=None, reused=[], ran=[], pending=[])
+    if _cache["digest"] is not None:
+        for fence in config.mdx_configs.get("pymdownx.superfences", {}).get("custom_fences", []):
+            if fence.get("format") is markdown_exec.formatter:
+                fence["format"] = _formatter
+        logging.getLogger("mkdocs").addHandler(_warnings)
+    return config
+
+
+def _formatter(source, language, css_class, options, md, **kwargs):
+    page = _cache["page"]
+    block = hashlib.sha256(repr((language, source, sorted(options.items()))).encode()).hexdigest()
+    if page is not None and page["stored"] is not None:
+        if page["stored"] and page["stored"][0][0] == block:
+            _, output, ids = page["stored"].pop(0)
+            page["served"] += 1
+            markdown_exec.MarkdownConverter.counter += ids
+            return Markup(output)
+        if page["served"]:  # a corrupt entry, found too late to run the whole page: a strict build fails
+            _log.warning(f"{page['uri']}: cached examples do not match the page; delete {CACHE_DIR}")
+        page["stored"] = None
+    before = markdown_exec.MarkdownConverter.counter
+    output = markdown_exec.formatter(source, language, css_class, options, md, **kwargs)
+    if page is not None:
+        page["ran"].append([block, str(output), markdown_exec.MarkdownConverter.counter - before])
+    return output
+
+
+def _start_page(markdown: str, uri: str) -> None:
+    _cache["page"] = None
+    if _cache["digest"] is None:
+        return
+    key = hashlib.sha256(json.dumps([_cache["digest"], uri, markdown]).encode()).hexdigest()
+    storable = "--8<--" not in markdown and not set(_SESSION.findall(markdown)) & _cache["shared"]
+    page: dict[str, Any] = dict(uri=uri, path=CACHE_DIR / f"{uri.replace('/', '__')}.json", key=key)
+    page.update(storable=storable, stored=None, served=0, ran=[], warned=_warnings.get_counts())
+    try:
+        entry = json.loads(page["path"].read_text(encoding="utf-8"))
+        valid = all([type(x) for x in block] == [str, str, int] for block in entry["blocks"])
+        page["stored"] = entry["blocks"] if storable and entry["key"] == key and entry["blocks"] and valid else None
+    except Exception:  # no entry, unreadable or corrupt: the examples run
+        pass
+    _cache["page"] = page
+
+
+def _finish_page() -> None:
+    page, _cache["page"] = _cache["page"], None
+    if page is None or not (page["ran"] or page["stored"] is not None):
+        return  # no executed blocks
+    _cache["ran" if page["ran"] else "reused"].append(page["uri"])
+    clean = _warnings.get_counts() == page["warned"] and _log.isEnabledFor(logging.WARNING)  # not with -q
+    if page["ran"] and page["storable"] and clean and not any(_NOT_STORED.search(b[1]) for b in page["ran"]):
+        _cache["pending"].append((page["path"], {"key": page["key"], "blocks": page["ran"]}))
+
+
+def _write_pending() -> None:
+    """Store the pages run, unless a keyed file changed during the build (their outputs may mix)."""
+    if _cache["pending"] and _build_digest() != _cache["digest"]:
+        return _log.info("Executed examples not cached: sources changed during the build")
+    for path, entry in _cache["pending"]:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            handle, temporary = tempfile.mkstemp(dir=CACHE_DIR, suffix=".tmp")
+            with os.fdopen(handle, "w", encoding="utf-8") as out:
+                json.dump(entry, out)
+            os.replace(temporary, path)
+        except OSError as error:
+            _log.info(f"Cannot write the cache of executed examples {path}: {error}")
+
+
 def on_files(files, config):
     for png in sorted((ROOT / "benchmarks" / "figures").glob("*.png")):
         files.append(File.generated(config, f"figures/{png.name}", abs_src_path=str(png)))
+    sessions = Counter(n for f in files.documentation_pages() for n in set(_SESSION.findall(f.content_string)))
+    _cache["shared"] = {name for name, count in sessions.items() if count > 1}
     return files
 
 
@@ -63,6 +193,7 @@ def on_page_markdown(markdown, page, config, files):
     problem = standalone.problem(markdown, page.file.src_uri)
     if problem:
         raise PluginError(problem)
+    _start_page(markdown, page.file.src_uri)
     return markdown
 
 
@@ -165,6 +296,7 @@ def _typeset(match: re.Match, where: str) -> str:
 
 
 def on_page_content(html_text, page, config, files):
+    _finish_page()
     where = page.file.src_uri
     html_text = _FORMULA.sub(lambda match: _typeset(match, where), html_text)
     if 'class="arithmatex"' in html_text:
@@ -173,6 +305,11 @@ def on_page_content(html_text, page, config, files):
 
 
 def on_post_build(config):
+    logging.getLogger("mkdocs").removeHandler(_warnings)
+    if _cache["digest"] is not None:
+        ran = ", ".join(_cache["ran"]) or "none"
+        _log.info(f"Executed examples: {len(_cache['reused'])} pages reused from {CACHE_DIR}, run: {ran}")
+        _write_pending()
     import jaxnh
 
     missing = []
