@@ -238,11 +238,11 @@ def simulate(
             the constraints hold exactly), `jaxnh.Substituted()` (the paper's
             wrong method, for comparison) — or its name "lagrange", "appell",
             "substituted". Lagrange's is the default: at the same error it
-            took 0.73–0.89× Appell's time on a rolling ball, 0.79–0.83× on a
-            car with four trailers and 1.04–1.15× on the variator (`python -m
+            took 0.78–0.96× Appell's time on a rolling ball, 0.78–0.87× on a
+            car with four trailers and 0.71–0.83× on the variator (`python -m
             benchmarks.precision`), and its first call is the shorter one on
-            large mechanisms (a car with 8 trailers: 28 s against 42 s; with
-            16: 33 s against 48 s; `python -m benchmarks.size --growth 8 16`).
+            large mechanisms (a car with 16 trailers: 6.4 s of CPU after the
+            import against 12.8 s; `python -m benchmarks.size`).
         solver: a diffrax solver; default `default_solver(rtol, size of the
             vector field, method)`.
         rtol, atol: relative and absolute tolerances of the default PID step
