@@ -99,7 +99,9 @@ def _build_digest() -> str | None:
             digest.update(name.encode() + (hashlib.sha256(path.read_bytes()).digest() if path.is_file() else b"-"))
     except (OSError, subprocess.CalledProcessError):  # no git, or a file it lists cannot be read
         return None
-    versions = sorted(f"{dist.metadata['Name']}=={dist.version}" for dist in metadata.distributions())
+    # a set: a distribution found twice (the checkout's jaxnh.egg-info once mkdocstrings puts "." on
+    # sys.path, and the installed one) must not change the key during the build
+    versions = sorted({f"{dist.metadata['Name']}=={dist.version}" for dist in metadata.distributions()})
     env = [f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith(("JAX", "XLA", "MPL", "PYTHON"))]
     env = [item for item in env if not item.startswith("JAXNH_DOCS_CACHE=")]
     where = os.path.relpath(os.getcwd(), ROOT)  # blocks open files relative to the working directory
