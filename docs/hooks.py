@@ -25,7 +25,6 @@ import os
 import re
 import subprocess
 import sys
-import tempfile
 import xml.etree.ElementTree as ET
 from collections import Counter
 from importlib import metadata
@@ -170,13 +169,13 @@ def _write_pending() -> None:
     """Store the pages run, unless a keyed file changed during the build (their outputs may mix)."""
     if _cache["pending"] and _build_digest() != _cache["digest"]:
         return _log.info("Executed examples not cached: sources changed during the build")
+    from jaxnh._base.atomic import atomic_write  # (the project's one atomic writer; jaxnh is imported late)
+
     for path, entry in _cache["pending"]:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            handle, temporary = tempfile.mkstemp(dir=CACHE_DIR, suffix=".tmp")
-            with os.fdopen(handle, "w", encoding="utf-8") as out:
+            with atomic_write(path, "w", encoding="utf-8") as out:
                 json.dump(entry, out)
-            os.replace(temporary, path)
         except OSError as error:
             _log.info(f"Cannot write the cache of executed examples {path}: {error}")
 
