@@ -16,9 +16,10 @@ from typing import Callable, TypeVar
 import equinox as eqx
 import jax
 import jax.core
+import numpy as np
 
 
-__all__ = ["ONE_SHOT", "one_shot_jit"]
+__all__ = ["ONE_SHOT", "lean_jit", "one_shot_jit"]
 
 ONE_SHOT = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 """XLA options for programs evaluated a handful of times (a linearisation). Measured on the
@@ -42,5 +43,64 @@ def one_shot_jit(fn: _F) -> _F:
     @functools.wraps(fn)
     def call(*args, **kwargs):
         return (plain if _traced((args, kwargs)) else cheap)(*args, **kwargs)
+
+    return call  # pyright: ignore[reportReturnType]
+
+
+_ARRAY = (jax.Array, np.ndarray, np.generic)  # equinox.is_array's kinds: traced; every other leaf is static
+
+
+class _Static:
+    """The static part of a call: the arguments' tree structure and their non-array leaves
+    (compared by value, as `equinox.filter_jit` compares them), hashed once."""
+
+    __slots__ = ("key", "hash")
+
+    def __init__(self, key):
+        self.key = key
+        self.hash = hash(key)
+
+    def __hash__(self) -> int:
+        return self.hash
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Static) and self.hash == other.hash and self.key == other.key
+
+
+class _Mixed(eqx.Module):
+    arrays: object
+    rest: object = eqx.field(static=True)
+
+
+def lean_jit(fn: _F) -> _F:
+    """`fn` compiled as `equinox.filter_jit` compiles it (array leaves of its arguments are traced,
+    every other leaf is a compile-time constant compared by value), with a lighter dispatch.
+
+    For a program that runs in a millisecond, `equinox.filter_jit`'s per-call work (binding the
+    signature, two partitions of the arguments, a logging filter, a warnings context) costs a
+    few hundred microseconds, a third of a small simulation; here a call flattens its arguments
+    once and hands `jax.jit` the arrays and one hashable key. An output with leaves that are
+    not arrays comes back through a static field, as equinox returns it. Error messages raised
+    from inside the program (`equinox.error_if`) reach the caller as JAX raises them.
+    """
+
+    @functools.partial(jax.jit, static_argnums=0)
+    def compiled(static: _Static, arrays: list):
+        treedef, fixed = static.key
+        it = iter(arrays)
+        args, kwargs = jax.tree_util.tree_unflatten(treedef, [next(it) if x is _ARRAY else x for x in fixed])
+        out = fn(*args, **dict(kwargs))
+        if all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(out)):
+            return out  # (decided while tracing: the common case pays no partition per call)
+        return _Mixed(*eqx.partition(out, eqx.is_array))
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        leaves, treedef = jax.tree_util.tree_flatten((args, tuple(sorted(kwargs.items()))))
+        arrays = [x for x in leaves if isinstance(x, _ARRAY)]
+        # (the tuple _ARRAY marks an array's place: no user leaf is that object)
+        fixed = tuple(_ARRAY if isinstance(x, _ARRAY) else x for x in leaves)
+        out = compiled(_Static((treedef, fixed)), arrays)
+        return eqx.combine(out.arrays, out.rest) if isinstance(out, _Mixed) else out
 
     return call  # pyright: ignore[reportReturnType]

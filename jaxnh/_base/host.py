@@ -37,6 +37,8 @@ def as_data(params, like):
     would compile a new program. Other leaves (arrays, ints, bools, strings,
     callables) are left as they are.
     """
+    if not any(type(x) is float for x in jax.tree_util.tree_leaves(params)):
+        return params  # (the common case, checked first: simulate's per-call cost)
     dtype = jnp.result_type(like, jnp.float32)
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype) if type(x) is float else x, params)
 

@@ -53,6 +53,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxnh._base.compat import status_code
+from jaxnh._base.compile import lean_jit
 from jaxnh._base.linalg import (
     cholesky,
     mm,
@@ -1008,7 +1009,7 @@ def _run_traced(
     )
 
 
-_run = eqx.filter_jit(_run_traced)
+_run = lean_jit(_run_traced)
 
 
 def simulate_friction(

@@ -24,6 +24,7 @@ import numpy as np
 import optimistix as optx
 
 from jaxnh._base.compat import status_code
+from jaxnh._base.compile import lean_jit
 from jaxnh._base.host import as_data, as_float
 from jaxnh._base.linalg import pick
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
@@ -31,7 +32,7 @@ from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations import Appell, as_formulation, Formulation, Lagrange
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._model.mechanism import Mechanism
-from jaxnh._model.profiles import declared_breakpoints
+from jaxnh._model.profiles import declared_breakpoints, Profile
 from jaxnh._solve.diagnose import diagnose_stall, initial_checks, on_branch, spectral_radius, STIFF_ABOVE
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
@@ -312,7 +313,7 @@ def simulate(
     ts = ts if _is_jax_array(ts, q0.dtype) else jnp.asarray(ts, dtype=q0.dtype)
     _check_cast_times(ts_given, ts)
     params = as_data(params, q0)  # one program per structure of params, not per value
-    leaves = jax.tree_util.tree_leaves(params)
+    leaves, params_def = jax.tree_util.tree_flatten(params)
     if any(_is_complex(x) for x in leaves):
         _refuse_complex(params)
     _check_param_leaves(leaves)
@@ -345,7 +346,7 @@ def simulate(
             f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
         )
     given_step_ts = step_ts is not None
-    declared = declared_breakpoints(params, q0.dtype)
+    declared = declared_breakpoints(params, q0.dtype) if _holds_profile(params_def) else None
     if declared is not None:
         step_ts = declared if step_ts is None else jnp.sort(jnp.concatenate([_as_times(step_ts, q0.dtype), declared]))
     if coarse_interpolant(solver) and (
@@ -394,7 +395,7 @@ def simulate(
             saveat=saveat, event=event, progress_meter=progress_meter, adjoint=adjoint, max_steps=max_steps, dt0=dt0,
             throw=throw, rtol=float(rtol), max_transitions=max_transitions,
         )  # fmt: skip
-    traced = is_traced(params, q0, qd0, ts, form)
+    traced = is_traced(leaves, q0, qd0, ts, form)
     try:
         sol = _run(
             mech,
@@ -481,9 +482,12 @@ def _check_cast_times(given, ts) -> None:
 
 @functools.lru_cache(maxsize=64)
 def _pid(rtol, atol, dtype):
-    # NumPy scalars: data to the compiled program (not a static constant), and safe to cache
-    # (a jnp array made while tracing would be a tracer)
-    return diffrax.PIDController(rtol=np.asarray(rtol, dtype=dtype), atol=np.asarray(atol, dtype=dtype))
+    # arrays: data to the compiled program (not a static constant). Made eagerly even when the
+    # first call is traced (a jnp array made while tracing would be a tracer, unsafe to cache);
+    # JAX arrays, not NumPy scalars, which a call would copy to the device every time
+    with jax.ensure_compile_time_eval():
+        rtol, atol = jnp.asarray(rtol, dtype=dtype), jnp.asarray(atol, dtype=dtype)
+    return diffrax.PIDController(rtol=rtol, atol=atol)
 
 
 def _rtol_class(rtol: float) -> float:
@@ -539,7 +543,25 @@ def _check_param_leaves(leaves) -> None:
 
 
 def _is_complex(x) -> bool:
+    if isinstance(x, jax.Array):
+        return x.dtype.kind == "c"
     return isinstance(x, complex) or (hasattr(x, "dtype") and np.iscomplexobj(x))
+
+
+def _holds_profile(params_def) -> bool:
+    """Whether a params structure holds a `Profile` (its breakpoints are looked for only then;
+    one answer per structure, True when the structure cannot say)."""
+    try:
+        return _structure_holds_profile(params_def)
+    except Exception:  # an unhashable structure, or a user node that refuses placeholder leaves
+        return True
+
+
+@functools.lru_cache(maxsize=256)
+def _structure_holds_profile(params_def) -> bool:
+    tree = jax.tree_util.tree_unflatten(params_def, [None] * params_def.num_leaves)
+    found = jax.tree_util.tree_leaves(tree, is_leaf=lambda x: isinstance(x, Profile))
+    return any(isinstance(x, Profile) for x in found)
 
 
 def _as_times(step_ts, dtype):
@@ -904,7 +926,7 @@ def _run_traced(
     )
 
 
-_run = eqx.filter_jit(_run_traced)
+_run = lean_jit(_run_traced)
 """`_run_traced` as its own compiled program (calls from outside any jit)."""
 
 
