@@ -90,3 +90,13 @@ def test_module_outputs_with_static_fields():
     g = lean_jit(lambda x: Out(2 * x, Tag("q"), note=len))  # `len`: a non-array leaf in a field
     out = g(jnp.asarray(1.5))
     assert isinstance(out, Out) and float(out.value) == 3.0 and out.tag == Tag("q") and out.note is len
+
+
+def test_an_error_raised_inside_is_readable_under_vmap():
+    """Traced calls (vmap, grad outside a jit) go through equinox's wrapper, which turns an
+    `equinox.error_if` into an error carrying its message, not JAX's runtime error."""
+    g = lean_jit(lambda x: eqx.error_if(x, x < 0, "x must be ≥ 0: pass a distance"))
+    np.testing.assert_array_equal(jax.vmap(g)(jnp.asarray([1.0, 2.0])), [1.0, 2.0])
+    with pytest.raises(Exception, match="x must be ≥ 0: pass a distance") as info:
+        jax.vmap(g)(jnp.asarray([1.0, -2.0]))
+    assert not isinstance(info.value, jax.errors.JaxRuntimeError)

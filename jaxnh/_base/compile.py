@@ -80,8 +80,11 @@ def lean_jit(fn: _F) -> _F:
     signature, two partitions of the arguments, a logging filter, a warnings context) costs a
     few hundred microseconds, a third of a small simulation; here a call flattens its arguments
     once and hands `jax.jit` the arrays and one hashable key. An output with leaves that are
-    not arrays comes back through a static field, as equinox returns it. Error messages raised
-    from inside the program (`equinox.error_if`) reach the caller as JAX raises them.
+    not arrays comes back through a static field, as equinox returns it. A call with traced
+    arguments (under `vmap` or `grad`) is `equinox.filter_jit`'s, which makes an error raised
+    inside the program (`equinox.error_if`) readable when it is the outermost program; a concrete
+    call passes such an error on as JAX raises it (simulate's eager program raises none: it
+    reports failures by status).
     """
 
     @functools.partial(jax.jit, static_argnums=0)
@@ -94,9 +97,16 @@ def lean_jit(fn: _F) -> _F:
             return out  # (decided while tracing: the common case pays no partition per call)
         return _Mixed(*eqx.partition(out, eqx.is_array))
 
+    traced_call = eqx.filter_jit(fn)
+
     @functools.wraps(fn)
     def call(*args, **kwargs):
         leaves, treedef = jax.tree_util.tree_flatten((args, tuple(sorted(kwargs.items()))))
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            # under vmap or grad (outside a jit) equinox's wrapper is the outermost program,
+            # where it turns an error raised inside into a readable one; the traced program is
+            # compiled once for the whole transformation, so its dispatch cost does not count
+            return traced_call(*args, **kwargs)
         arrays = [x for x in leaves if isinstance(x, _ARRAY)]
         # (the tuple _ARRAY marks an array's place: no user leaf is that object)
         fixed = tuple(_ARRAY if isinstance(x, _ARRAY) else x for x in leaves)
