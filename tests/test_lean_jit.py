@@ -100,3 +100,15 @@ def test_an_error_raised_inside_is_readable_under_vmap():
     with pytest.raises(Exception, match="x must be ≥ 0: pass a distance") as info:
         jax.vmap(g)(jnp.asarray([1.0, -2.0]))
     assert not isinstance(info.value, jax.errors.JaxRuntimeError)
+
+
+def test_compiler_options_apply_and_an_unknown_option_falls_back_to_xla_defaults():
+    """Concrete calls compile with the given XLA options; an option this XLA does not know (as a
+    future one might drop a debug option) compiles with its defaults instead of failing."""
+    known = lean_jit(lambda x: 2 * x, compiler_options={"xla_cpu_use_fusion_emitters": False})
+    assert float(known(jnp.asarray(1.5))) == 3.0
+    unknown = lean_jit(lambda x: 2 * x, compiler_options={"xla_no_such_option_in_any_xla": True})
+    assert float(unknown(jnp.asarray(1.5))) == 3.0
+    assert float(unknown(jnp.asarray(2.5))) == 5.0
+    # under a transformation the options are left out (JAX refuses them on a nested program)
+    assert float(jax.jit(lambda x: known(x) + 1)(jnp.asarray(1.5))) == 4.0

@@ -235,6 +235,21 @@ def test_new_values_of_float_parameters_reuse_the_compiled_program():
     assert len(traced) == after_first
 
 
+def test_every_input_closed_over_inside_jit():
+    """Inside a caller's jit with every input a constant, simulate gives the eager answer, and an
+    invalid input raises from inside the program (no input is traced, but the outputs are)."""
+    eager = nh.simulate(MECH, P, jnp.zeros(2), QD0, TS).q[-1]
+    inside = jax.jit(lambda x: nh.simulate(MECH, P, jnp.zeros(2), QD0, TS).q[-1] + x)(0.0)
+    # the same solve compiled twice (the eager one with jaxnh's XLA options): they differ by
+    # rounding, and should a step decision flip by it, by up to the requested rtol (1e-8)
+    np.testing.assert_allclose(inside, eager, rtol=1e-8, atol=0)
+    bad = jnp.array([2.0, 3.0])  # violates rolling: U21(0) = 1 needs qd[1] = qd[0]
+    with pytest.raises(Exception, match="violates the nonholonomic constraints"):
+        jax.block_until_ready(jax.jit(lambda x: nh.simulate(MECH, P, jnp.zeros(2), bad, TS).q[-1] + x)(0.0))
+    status = jax.jit(lambda: nh.simulate(MECH, P, jnp.zeros(2), bad, TS, throw=False).status)()
+    assert status == nh.STATUS.inconsistent_velocities
+
+
 # --- NaN in, NaN out; a failed solve gives NaN gradients ----------------------------------
 
 

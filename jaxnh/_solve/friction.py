@@ -53,7 +53,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxnh._base.compat import status_code
-from jaxnh._base.compile import lean_jit
+from jaxnh._base.compile import lean_jit, SOLVE
 from jaxnh._base.linalg import (
     cholesky,
     mm,
@@ -80,7 +80,7 @@ from jaxnh._model.checks import (
 )
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
-from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
+from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.sensitivity import diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import Solution
 from jaxnh._solve.stepping import coarse_interpolant
@@ -1009,7 +1009,7 @@ def _run_traced(
     )
 
 
-_run = lean_jit(_run_traced)
+_run = lean_jit(_run_traced, compiler_options=SOLVE)
 
 
 def simulate_friction(
@@ -1095,22 +1095,14 @@ def simulate_friction(
             "on the solver's interpolant, and this solver's is diffrax's third-order Hermite between long implicit "
             "steps, far less accurate than the requested tolerance. Use diffrax.Kvaerno3() or an explicit solver"
         )
-    traced = is_traced(params, q0, qd0, ts)
-    sol = _run(
-        f,
-        params,
-        q0,
-        qd0,
-        ts,
-        solver,
-        stepsize_controller,
-        adjoint,
-        dt0,
-        record=tuple(record),
-        max_steps=int(max_steps),
-        cap=int(max_transitions),
-        graph_throw=bool(throw and traced),
-    )
+
+    def run(graph_throw: bool) -> Solution:
+        return _run(
+            f, params, q0, qd0, ts, solver, stepsize_controller, adjoint, dt0, record=tuple(record),
+            max_steps=int(max_steps), cap=int(max_transitions), graph_throw=graph_throw,
+        )  # fmt: skip
+
+    sol, traced = run_checked(run, is_traced(params, q0, qd0, ts), bool(throw))
     if throw and not traced and np.ndim(status_code(sol.status)) == 0 and not bool(sol.status == STATUS.successful):
         err = error_for(sol.status)
         raise type(err)(sol.message, sol.status)

@@ -3,12 +3,36 @@ and outputs: finiteness checks, NaN derivatives for failed solves, stopped gradi
 
 from __future__ import annotations
 
+from typing import Callable, TypeVar
+
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 
+from jaxnh._base.compat import status_code
 
-__all__ = ["all_finite", "nan_link", "input_sum", "no_grad", "bcast"]
+
+__all__ = ["all_finite", "nan_link", "input_sum", "no_grad", "bcast", "run_checked"]
+
+_S = TypeVar("_S")
+
+
+def run_checked(run: Callable[[bool], _S], traced: bool, throw: bool) -> tuple[_S, bool]:
+    """`run(graph_throw)`, the compiled part of a solve, and whether its outputs are traced.
+
+    A failure raises from inside the program (`graph_throw`) when `throw` and the solve is
+    traced. Traced inputs say so before the run; a call whose inputs are all concrete but which
+    sits inside a caller's jit (everything closed over) shows it only by its traced outputs:
+    it is then traced again with the raise (only tracing is repeated, the first program is
+    unused and pruned).
+    """
+    out = run(throw and traced)
+    if not traced and isinstance(status_code(out.status), jax.core.Tracer):  # pyright: ignore[reportAttributeAccessIssue]
+        traced = True
+        if throw:
+            out = run(True)
+    return out, traced
 
 
 def all_finite(tree):

@@ -19,12 +19,13 @@ from typing import Any, Callable, Iterable, Optional, TypeGuard
 import diffrax
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
 from jaxnh._base.compat import status_code
-from jaxnh._base.compile import lean_jit
+from jaxnh._base.compile import lean_jit, SOLVE
 from jaxnh._base.host import as_data, as_float
 from jaxnh._base.linalg import pick
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
@@ -35,7 +36,7 @@ from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints, Profile
 from jaxnh._solve.diagnose import diagnose_stall, initial_checks, on_branch, spectral_radius, STIFF_ABOVE
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
-from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad
+from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.rk import UnrolledTsit5
 from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
 from jaxnh._solve.solution import DenseMotion, Expansion, Solution
@@ -396,34 +397,23 @@ def simulate(
             throw=throw, rtol=float(rtol), max_transitions=max_transitions,
         )  # fmt: skip
     traced = is_traced(leaves, q0, qd0, ts, form)
-    try:
-        sol = _run(
-            mech,
-            form,
-            params,
-            q0,
-            qd0,
-            ts,
-            solver,
-            stepsize_controller,
-            saveat,
-            event,
-            progress_meter,
-            adjoint,
-            dt0,
-            record=record,
-            max_steps=int(max_steps),
-            rtol=_rtol_class(float(rtol)),
-            graph_throw=bool(throw and traced),
-        )
-    except TypeError as e:  # JAX's words name no argument: say which one and the fix
-        if "custom_vjp" not in str(e):
-            raise
-        raise TypeError(
-            "simulate: forward-mode derivatives (jax.jvp, jax.jacfwd) cannot go through a reverse-mode adjoint "
-            f"(adjoint={adjoint!r}; diffrax's RecursiveCheckpointAdjoint is the default with events, dense output "
-            "and progress meters): pass adjoint=diffrax.ForwardMode(), or use jax.grad / jax.jacrev"
-        ) from e
+
+    def solve(graph_throw: bool) -> Solution:
+        try:
+            return _run(
+                mech, form, params, q0, qd0, ts, solver, stepsize_controller, saveat, event, progress_meter, adjoint,
+                dt0, record=record, max_steps=int(max_steps), rtol=_rtol_class(float(rtol)), graph_throw=graph_throw,
+            )  # fmt: skip
+        except TypeError as e:  # JAX's words name no argument: say which one and the fix
+            if "custom_vjp" not in str(e):
+                raise
+            raise TypeError(
+                "simulate: forward-mode derivatives (jax.jvp, jax.jacfwd) cannot go through a reverse-mode adjoint "
+                f"(adjoint={adjoint!r}; diffrax's RecursiveCheckpointAdjoint is the default with events, dense "
+                "output and progress meters): pass adjoint=diffrax.ForwardMode(), or use jax.grad / jax.jacrev"
+            ) from e
+
+    sol, traced = run_checked(solve, traced, bool(throw))
     if throw and not traced and np.ndim(status_code(sol.status)) == 0 and int(np.asarray(status_code(sol.status))) != 0:
         err = error_for(sol.status)
         if isinstance(err, ValueError):  # name the argument and show the values, eagerly
@@ -926,7 +916,7 @@ def _run_traced(
     )
 
 
-_run = lean_jit(_run_traced)
+_run = lean_jit(_run_traced, compiler_options=SOLVE)
 """`_run_traced` as its own compiled program (calls from outside any jit)."""
 
 
