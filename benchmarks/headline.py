@@ -5,8 +5,9 @@ each with its error against the closed form:
 
 * `nh.simulate(...)`, a plain call with every default (the default
   formulation, Lagrange's, default solver), and the same under `jax.jit`
-  (with the report times closed over, and with every input an argument: the
-  plain call's median excess over the latter is its per-call overhead);
+  (with the report times closed over, and with every input an argument and
+  the eager call's XLA options: the plain call's median excess over the
+  latter is its per-call overhead);
 * eq. (9) written by hand, `diffrax.diffeqsolve` with `diffrax.Tsit5`, jitted,
   its report times closed over as constants (as a script writes it), and the
   same program taking the report times as an argument (as `simulate`, which
@@ -39,6 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxnh as nh  # noqa: E402
+from jaxnh._base.compile import SOLVE  # noqa: E402
 
 from .mechanisms import variator as VV  # noqa: E402
 
@@ -67,8 +69,9 @@ def contenders(batch: int):
     out[PLAIN] = (plain, lambda s: (s.q, s.qd, s.stats["num_steps"]))
     jsim = jax.jit(lambda p: nh.simulate(mech, p, VV.Q0, VV.QD0, ts))
     out[JIT] = (lambda: jax.block_until_ready(jsim(P)), lambda s: (s.q, s.qd, s.stats["num_steps"]))
-    # the same inputs as the plain call, all of them arguments: plain − this is the eager call's own cost
-    jargs = jax.jit(lambda p, q0, qd0, ts_: nh.simulate(mech, p, q0, qd0, ts_))
+    # the same inputs as the plain call, all of them arguments, and the XLA options simulate compiles
+    # its eager program with: the same program, so plain − this is the eager call's own cost
+    jargs = jax.jit(lambda p, q0, qd0, ts_: nh.simulate(mech, p, q0, qd0, ts_), compiler_options=SOLVE)
     out[JIT_ARGS] = (
         lambda: jax.block_until_ready(jargs(P, VV.Q0, VV.QD0, ts)),
         lambda s: (s.q, s.qd, s.stats["num_steps"]),

@@ -296,6 +296,7 @@ def simulate(
         A `Solution`.
     """
     ind = None if independent is None else tuple(int(i) for i in independent)
+    cached_form = _hashable(method) and baumgarte_rate is None  # (no arrays: nothing in it can be traced)
     if _hashable(method):  # names and array-free formulation objects: resolved once, cached
         form = _resolve(method, ind, stabilization, baumgarte_rate is not None)
     else:
@@ -396,7 +397,7 @@ def simulate(
             saveat=saveat, event=event, progress_meter=progress_meter, adjoint=adjoint, max_steps=max_steps, dt0=dt0,
             throw=throw, rtol=float(rtol), max_transitions=max_transitions,
         )  # fmt: skip
-    traced = is_traced(leaves, q0, qd0, ts, form)
+    traced = is_traced(leaves, q0, qd0, ts) or (not cached_form and is_traced(form))
 
     def solve(graph_throw: bool) -> Solution:
         try:
