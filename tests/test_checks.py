@@ -176,3 +176,34 @@ def test_acceleration_energy_is_checked_against_the_kinetic_energy(S, agrees):
     sol = jax.jit(lambda q: nh.simulate(mech, {}, q, qd0, ts, method="appell", throw=False))(q0)
     assert bool(sol.status == nh.STATUS.acceleration_energy_mismatch)
     assert bool(jnp.all(jnp.isnan(sol.q)))
+
+
+def test_singular_rows_flags_a_fold_and_no_consistent_linear_row():
+    """`singular_rows`: a row of ∂c/∂qd that vanishes to within √eps of the constraint's scale.
+    c = nl y² + R y + d at its double root y = −R/(2 nl) (d = R²/(4 nl)) has A = 2 nl y + R = 0
+    to rounding: its velocity part (eps·R·|y|) is eps-level against |d|, far below √eps."""
+    from jaxnh._model.checks import singular_rows
+
+    nl, R = 0.7, 1.3
+    y = jnp.asarray([-R / (2 * nl)])
+    A = jnp.asarray([[2 * nl * y[0] + R]])  # 0, or a rounding-level remainder
+    d = jnp.asarray([R * R / (4 * nl)])
+    assert bool(singular_rows(A + 1e-16, y, d)) and bool(singular_rows(A, y, d))
+    # away from the fold (y at the simple root of nl y² + R y = 0 shifted): a regular row
+    assert not bool(singular_rows(jnp.asarray([[R]]), jnp.asarray([0.5]), jnp.asarray([-0.65])))
+    # linear rows met by qd (A qd = −a) never qualify, however large a is against A
+    A2 = jnp.asarray([[1e-9, 0.0], [1.0, -1.0]])
+    qd = jnp.asarray([1e9, 1e9])
+    assert not bool(singular_rows(A2, qd, -(A2 @ qd)))
+    # at rest with a = 0: nothing to judge, not flagged
+    assert not bool(singular_rows(A2, jnp.zeros(2), jnp.zeros(2)))
+
+
+def test_a_driven_mechanism_started_at_rest_is_inconsistent_not_singular():
+    """A drive c = qd[0] − v met by no qd0 at rest has a velocity part of 0 against |v|: the
+    start is reported as inconsistent (the row is not met), not as a fold of the constraint."""
+    mech = nh.Mechanism(
+        lambda q, qd, t, p: 0.5 * jnp.sum(qd**2), constraints=lambda q, qd, t, p: jnp.stack([qd[0] - p["v"]])
+    )
+    sol = nh.simulate(mech, {"v": 2.0}, jnp.zeros(2), jnp.zeros(2), jnp.linspace(0.0, 1.0, 3), throw=False)
+    assert sol.status == nh.STATUS.inconsistent_velocities

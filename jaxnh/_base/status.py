@@ -155,6 +155,12 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "sol.contacts.stopped_contact give the time and the contact. Raise max_transitions, or "
         "check the contact: a normal force near 0, or μs = μk with a force that hovers at μs N."
     )
+    constraint_jacobian_singular = (
+        "A constraint's velocity Jacobian ∂c_k/∂qd vanishes at the initial state to within √eps of "
+        "the constraint's scale (‖∂c_k/∂qd‖·‖the velocities it involves‖ against |c_k(q0, 0, t0)|): "
+        "a constraint nonlinear in the velocities starts at a fold, a double root of c_k = 0 in "
+        "qd, where no unique motion starts. Start from a state where ∂c/∂qd has full rank."
+    )
 
 
 MAX_STEPS_ADVICE = (
@@ -188,6 +194,7 @@ INPUT_FAILURES = (
     "mass_matrix_not_positive_definite",
     "inconsistent_velocities",
     "velocity_free_constraint",
+    "constraint_jacobian_singular",
     "constraints_not_finite",
     "constraints_nonlinear",
     "constraints_nearly_dependent",

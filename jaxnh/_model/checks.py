@@ -43,6 +43,7 @@ __all__ = [
     "scaled_norm",
     "nearly_dependent",
     "consistent",
+    "singular_rows",
 ]
 
 
@@ -136,6 +137,21 @@ def consistency_tolerance(A, qd, a):
     eps = jnp.finfo(qd.dtype).eps
     floor = ROUNDING_FLOOR * eps * scaled_norm(A, axis=1) * scaled_norm(qd)
     return jnp.sqrt(eps) * constraint_scale(A, qd, a) + floor + jnp.finfo(qd.dtype).tiny
+
+
+def singular_rows(A, qd, a):
+    """Whether a constraint's row of ∂c/∂qd vanishes to within √eps of its scale: the velocity
+    part `‖A_k‖·‖qd over the coordinates row k involves‖` of `constraint_scale` below √eps times
+    the whole (a fold of a constraint nonlinear in the velocities, c_k = 0 at a double root).
+
+    Judged after `consistent`: a row that qd does not meet is reported as inconsistent (a driven
+    mechanism started at rest has a velocity part of 0 against its drive). A met linear row never
+    qualifies: `A_k qd = −a_k` makes its velocity part at least |a_k| (to the tolerance). A row at
+    rest with a_k = 0 does not either (0 is not below 0); a row of exact zeros is
+    `velocity_free`, reported first.
+    """
+    velocity_part = constraint_scale(A, qd, jnp.zeros_like(a))
+    return jnp.any(velocity_part < jnp.sqrt(jnp.finfo(qd.dtype).eps) * (velocity_part + jnp.abs(a)))
 
 
 DEPENDENT_BELOW = 1e2

@@ -25,7 +25,7 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
 from jaxnh._equations.terms import mass_and_velocity_terms
-from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, nearly_dependent
+from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, nearly_dependent, singular_rows
 
 
 __all__ = [
@@ -138,6 +138,7 @@ def initial_checks(form, q, qd, t, params):
         a = c(jnp.zeros_like(qd))
         finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
         velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
+        singular = singular_rows(A, qd, a)
         on_manifold = consistent(A, c0, qd, a)
         linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
         near = nearly_dependent(A)
@@ -150,6 +151,7 @@ def initial_checks(form, q, qd, t, params):
             (~near, STATUS.constraints_nearly_dependent),
             (form_ok, form_status),
             (on_manifold, STATUS.inconsistent_velocities),
+            (~singular, STATUS.constraint_jacobian_singular),  # (met, but at a fold)
         ):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good

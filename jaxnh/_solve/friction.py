@@ -77,6 +77,7 @@ from jaxnh._model.checks import (
     constraints_affine,
     mass_matrix_ok,
     nearly_dependent,
+    singular_rows,
 )
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
@@ -706,6 +707,7 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     a = mech.constraint(q, jnp.zeros_like(qd), t, params)
     finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
     velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
+    singular = singular_rows(A, qd, a)
     linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
     near = nearly_dependent(A)
     held = f.held
@@ -736,6 +738,7 @@ def _initial_checks(f: _Friction, q, qd, t, params):
         (values_ok, STATUS.friction_values_invalid),
         (split_ok, STATUS.singular_split),
         (on_manifold, STATUS.inconsistent_velocities),
+        (~singular, STATUS.constraint_jacobian_singular),  # (met, but at a fold)
     ):
         status = STATUS.where(ok & ~good, item, status)
         ok = ok & good
