@@ -296,8 +296,9 @@ def simulate(
         A `Solution`.
     """
     ind = None if independent is None else tuple(int(i) for i in independent)
-    cached_form = _hashable(method) and baumgarte_rate is None  # (no arrays: nothing in it can be traced)
-    if _hashable(method):  # names and array-free formulation objects: resolved once, cached
+    hashable = _hashable(method)
+    cached_form = hashable and baumgarte_rate is None  # (no arrays: nothing in it can be traced)
+    if hashable:  # names and array-free formulation objects: resolved once, cached
         form = _resolve(method, ind, stabilization, baumgarte_rate is not None)
     else:
         form = as_formulation(method, ind)
