@@ -207,3 +207,57 @@ def test_a_driven_mechanism_started_at_rest_is_inconsistent_not_singular():
     )
     sol = nh.simulate(mech, {"v": 2.0}, jnp.zeros(2), jnp.zeros(2), jnp.linspace(0.0, 1.0, 3), throw=False)
     assert sol.status == nh.STATUS.inconsistent_velocities
+
+
+def test_shared_row_checks_agree_with_the_separate_checks():
+    """`constraint_row_checks` evaluates ∂c/∂qd once, c once (batched over qd = 0 and the
+    affinity probe's two points) and one SVD for `nearly_dependent` and `consistent`: each verdict
+    must be the one the separate check gives. Cases: independent rows met by qd, a violated row,
+    nearly dependent rows (1e-9 apart), more rows than coordinates (the fourth a sum of two), a
+    constraint declared linear that is not, and a subset of held rows whose violation is ignored."""
+    from jaxnh._model.checks import consistent, constraint_row_checks, constraints_affine, nearly_dependent
+
+    def c_lin(q, qd, t, p):
+        return p["A"] @ qd + p["a"]
+
+    def c_quad(q, qd, t, p):
+        return p["A"] @ qd + p["a"] + jnp.stack([qd[0] ** 2] + [0.0 * qd[0]] * (p["A"].shape[0] - 1))
+
+    T = lambda q, qd, t, p: 0.5 * jnp.sum(qd**2)  # noqa: E731
+    qd = jnp.array([1.0, 2.0, -0.5])
+    A3 = jnp.array([[1.0, 0.0, 2.0], [0.0, 1.0, -1.0]])
+    near = jnp.array([[1.0, -1.0, 0.0], [1.0 + 1e-9, -1.0, 0.0]])
+    four = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]])
+    cases = [
+        (c_lin, A3, -(A3 @ qd), None),  # met
+        (c_lin, A3, -(A3 @ qd) + jnp.array([0.0, 1e-3]), None),  # row 1 violated
+        (c_lin, near, -(near @ qd), None),  # nearly dependent
+        (c_lin, four, -(four @ qd), None),  # m > s, dependent to rounding
+        (c_quad, A3, -(A3 @ qd) - jnp.array([1.0, 0.0]), None),  # declared linear, is not
+        (c_lin, A3, -(A3 @ qd) + jnp.array([0.0, 1e-3]), (0,)),  # the violated row is not held
+    ]
+    for c, A, a, held in cases:
+        mech = nh.Mechanism(T, constraints=c)
+        p = {"A": A, "a": a}
+        q = jnp.zeros(3)
+        rows = constraint_row_checks(mech, q, qd, 0.0, p, held)
+        got = [bool(g) for g, _ in (*rows.leading, *rows.trailing)]
+        c0 = c(q, qd, 0.0, p)
+        a0 = c(q, jnp.zeros(3), 0.0, p)
+        Ah = rows.A if held is None else rows.A[jnp.asarray(held)]
+        want_consistent = consistent(
+            Ah, c0 if held is None else c0[jnp.asarray(held)], qd, a0 if held is None else a0[jnp.asarray(held)]
+        )
+        assert np.allclose(rows.A, jax.jacfwd(lambda v: c(q, v, 0.0, p))(qd), rtol=0, atol=1e-15)
+        assert got[2] == bool(constraints_affine(mech, q, qd, 0.0, p))
+        assert got[3] == (not bool(nearly_dependent(rows.A)))
+        assert got[4] == bool(want_consistent)
+    # the verdicts themselves: met, violated, nearly dependent, m > s, nonlinear, unheld violation
+    verdicts = []
+    for c, A, a, held in cases:
+        rows = constraint_row_checks(nh.Mechanism(T, constraints=c), jnp.zeros(3), qd, 0.0, {"A": A, "a": a}, held)
+        verdicts.append(next((s for g, s in (*rows.leading, *rows.trailing) if not bool(g)), None))
+    S = nh.STATUS
+    want = [None, S.inconsistent_velocities, S.constraints_nearly_dependent, None, S.constraints_nonlinear, None]
+    assert [v is None for v in verdicts] == [w is None for w in want]
+    assert all(bool(v == w) for v, w in zip(verdicts, want) if w is not None)

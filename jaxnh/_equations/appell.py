@@ -140,10 +140,10 @@ class Appell(Formulation):
         vd = solve_spd(K, rhs)
         return qd, mm(B, vd) + beta, vd
 
-    def _state_partition(self, q, qd, t, params):
+    def _state_partition(self, q, qd, t, params, A=None, inertias=None):
         if not self.traced:
             return self.partition(None)
-        return best_partition(self.bound_mech, q, qd, t, params, self.s, self.m)[0]
+        return best_partition(self.bound_mech, q, qd, t, params, self.s, self.m, A, inertias)[0]
 
     def accelerations(
         self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object, multipliers: bool = False
@@ -166,18 +166,31 @@ class Appell(Formulation):
         return _Partitioning(self.traced and self.repartition)
 
     def check(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> tuple[jax.Array, STATUS]:
+        return self.check_given(q, qd, t, params, None, None)
+
+    def check_given(
+        self,
+        q: jax.Array,
+        qd: jax.Array,
+        t: jax.typing.ArrayLike,
+        params: object,
+        A: Optional[jax.Array],
+        inertias: Optional[jax.Array],
+    ) -> tuple[jax.Array, STATUS]:
         if self.m == 0:
             return jnp.asarray(True), STATUS.successful  # pyright: ignore[reportReturnType]
         tiny = 1e3 * jnp.finfo(q.dtype).eps
+        mech = self.bound_mech
         if self.traced:  # the best block singular to rounding: smallest singular value below 1e3 eps
-            ok = best_block_margin(self.bound_mech, q, qd, t, params, self.m) > tiny
+            ok = best_block_margin(mech, q, qd, t, params, self.m, A, inertias) > tiny
         else:
-            ratio, _, _ = partition_quality(self.bound_mech, q, qd, t, params, self.partition(None), self.s - self.m)
+            part = self.partition(None)
+            ratio, _, _ = partition_quality(mech, q, qd, t, params, part, self.s - self.m, A, inertias)
             ok = ratio > tiny
         # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
         status = STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
         if self.bound_mech.nonlinear_constraints:  # the dependent velocities must be solvable at the start
-            part = self._state_partition(q, qd, t, params)
+            part = self._state_partition(q, qd, t, params, A, inertias)
             v = self.split.independent_of(qd, part)
             solved = self.split.velocities(q, v, t, params, part)  # from zero, as the vector field does
             unsolved = ok & ~jnp.all(jnp.isfinite(solved))
@@ -232,8 +245,11 @@ class _Partitioning(StepMaps):
     def _pre(f, t, y, params, ok):
         q, v, _ = f.parts(y)
         perm = f.partition(y)
-        qd = f.split.velocities(q, v, t, params, perm)
-        ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m)
+        if f.mech.nonlinear_constraints:
+            qd, A = f.split.velocities(q, v, t, params, perm), None
+        else:  # A = ∂c/∂qd does not depend on qd: the one the velocities were solved with
+            qd, A = f.split.linear_velocities(q, v, t, params, perm)
+        ratio, _, best = partition_quality(f.mech, q, qd, t, params, perm, f.s - f.m, A)
         switch = (ratio < SWITCH_BELOW) & ok  # a failed initial check: the (zero) state stays as it is
         k = f.s - f.m
         if f.mech.nonlinear_constraints:

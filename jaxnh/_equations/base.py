@@ -99,6 +99,14 @@ class Formulation(eqx.Module):
         """(ok, STATUS) of formulation-specific checks of an initial state (in the graph)."""
         return jnp.asarray(True), STATUS.successful
 
+    def check_given(
+        self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: Any, A: jax.Array, inertias: jax.Array
+    ) -> tuple[jax.Array, diffrax.RESULTS]:
+        """`check`, given what the solve's own initial checks have evaluated at the state already:
+        `A` = ∂c/∂qd (m, s) and `inertias`, the mass matrix's diagonal (kg·m² or kg). The default
+        ignores them and calls `check`; a formulation whose check needs them overrides this."""
+        return self.check(q, qd, t, params)
+
     def describe_failure(self, status: STATUS) -> Optional[str]:
         """Extra words for a failure status specific to this formulation."""
         return None

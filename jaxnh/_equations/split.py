@@ -78,7 +78,7 @@ def constraint_matrix(mech: Mechanism, q, qd, t, params):
     return jax.jacfwd(lambda v: mech.constraint(q, v, t, params))(qd)
 
 
-def mass_scaled_matrix(mech: Mechanism, q, qd, t, params, A=None):
+def mass_scaled_matrix(mech: Mechanism, q, qd, t, params, A=None, inertias=None):
     """A = ∂c/∂qd (m, s) with column j divided by √M_jj (M = ∂²T/∂qd², the mass matrix).
 
     The partition is chosen on this matrix, not on A: a column of A is in the
@@ -89,13 +89,13 @@ def mass_scaled_matrix(mech: Mechanism, q, qd, t, params, A=None):
     energy), and the choice no longer depends on how any coordinate is scaled:
     heavy velocities (large M_jj) are kept independent and light ones, which can
     follow from them without amplifying their error in the kinetic-energy
-    norm, become dependent. `A`: the constraint matrix at the state, when the
-    caller has it already.
+    norm, become dependent. `A` and `inertias` (the mass matrix's diagonal): their values at the
+    state, when the caller has them already.
     """
     A = constraint_matrix(mech, q, qd, t, params) if A is None else A
     if A.shape[0] == 0:
         return A
-    d = jnp.diagonal(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd))
+    d = jnp.diagonal(jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)) if inertias is None else inertias
     d = jnp.where(d > 0, d, 1.0)  # (a mass matrix that is not positive definite is reported by the checks)
     return A / jnp.sqrt(d).astype(A.dtype)[None, :]
 
@@ -131,15 +131,16 @@ def best_dependent(A) -> tuple[jax.Array, jax.Array]:
     return jnp.stack(idx).astype(jnp.int32), vol
 
 
-def best_block_margin(mech: Mechanism, q, qd, t, params, m: int):
+def best_block_margin(mech: Mechanism, q, qd, t, params, m: int, A=None, inertias=None):
     """The smallest singular value of the best dependent block (the one `best_partition` picks) of
     the row-normalised, mass-scaled A: how far the automatic split is from a singular block.
 
     The block's volume (|det|, the product of its singular values) is no such measure: it falls
     geometrically with m on well-conditioned blocks (a car pulling N trailers: 3e-3, 1e-7 and
     1e-18 at N = 8, 16 and 32, every block well conditioned), while the smallest singular value
-    does not depend on m. It equals the volume for m = 1 (dimensionless, at most 1)."""
-    A = mass_scaled_matrix(mech, q, qd, t, params)
+    does not depend on m. It equals the volume for m = 1 (dimensionless, at most 1). `A`,
+    `inertias`: as for `mass_scaled_matrix`."""
+    A = mass_scaled_matrix(mech, q, qd, t, params, A, inertias)
     if m == 0:
         return jnp.ones((), q.dtype)
     dep, _ = best_dependent(A)
@@ -171,11 +172,12 @@ def partition_from_dependent(dep, s: int):
     return jnp.concatenate(out)
 
 
-def best_partition(mech: Mechanism, q, qd, t, params, s: int, m: int):
-    """The best-conditioned partition at a state, as data: (perm (s,) int32, volume)."""
+def best_partition(mech: Mechanism, q, qd, t, params, s: int, m: int, A=None, inertias=None):
+    """The best-conditioned partition at a state, as data: (perm (s,) int32, volume). `A`,
+    `inertias`: as for `mass_scaled_matrix`."""
     if m == 0:
         return jnp.arange(s, dtype=jnp.int32), jnp.ones((), q.dtype)
-    dep, vol = best_dependent(mass_scaled_matrix(mech, q, qd, t, params))
+    dep, vol = best_dependent(mass_scaled_matrix(mech, q, qd, t, params, A, inertias))
     return partition_from_dependent(dep, s), vol
 
 
@@ -213,16 +215,15 @@ def _det(D):
     return jnp.linalg.det(D)
 
 
-def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int, A=None):
+def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int, A=None, inertias=None):
     """(|det A_D| / best volume, signed det A_D, best perm): how good the block in use is.
 
     The ratio is 1 for the best block greedy pivoting finds and 0 for a
     singular block (both on the row-normalised, mass-scaled A of
-    `mass_scaled_matrix`). `A`: the constraint matrix ∂c/∂qd at the state,
-    when the caller has it already.
+    `mass_scaled_matrix`). `A`, `inertias`: as for `mass_scaled_matrix`.
     """
     s = q.shape[0]
-    A = mass_scaled_matrix(mech, q, qd, t, params, A)
+    A = mass_scaled_matrix(mech, q, qd, t, params, A, inertias)
     if A.shape[0] == 0:
         one = jnp.ones((), q.dtype)
         return one, one, jnp.arange(s, dtype=jnp.int32)
@@ -367,6 +368,13 @@ class VelocitySplit(eqx.Module):
         )
         return qd, B, beta
 
+    def linear_velocities(self, q, v, t, params, part: Partition) -> tuple[jax.Array, jax.Array]:
+        """For constraints linear in the velocities: (qd (s,) from v (k,), A = ∂c/∂qd (m, s)), the
+        matrix the solve for qd used (it does not depend on qd), for a caller that needs both."""
+        a, A = value_and_jacfwd(lambda u: self.mech.constraint(q, u, t, params), jnp.zeros((self.s,), q.dtype))
+        AI, AD = _columns(A, part, self.k)
+        return place(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)), part), A
+
     def _linear_terms(self, q, t, params, part: Partition):
         """a = c(q, 0, t) and the columns A_I, A_D of A = ∂c/∂q̇ (one pass over c)."""
         mech = self.mech
@@ -376,8 +384,7 @@ class VelocitySplit(eqx.Module):
 
     def _linear_velocities(self, q, v, t, params, part: Partition):
         """q̇ from `A_D q̇_D = −(A_I v + a)` alone (no B or β to trace)."""
-        a, AI, AD = self._linear_terms(q, t, params, part)
-        return place(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)), part)
+        return self.linear_velocities(q, v, t, params, part)[0]
 
     def _linear(self, q, v, t, params, part: Partition):
         """For `A q̇ + a = 0`: `B = [I; −A_D⁻¹ A_I]` and `A_D β_D = −b` written out.

@@ -29,10 +29,13 @@ reported eagerly and under `jit`, `vmap` (per batch member) and `grad`:
 
 from __future__ import annotations
 
+from typing import NamedTuple, Optional
+
 import jax
 import jax.numpy as jnp
 
-from jaxnh._base.linalg import pivot_rtol
+from jaxnh._base.linalg import pick, pivot_rtol, value_and_jacfwd
+from jaxnh._base.status import STATUS
 
 
 __all__ = [
@@ -44,6 +47,8 @@ __all__ = [
     "nearly_dependent",
     "consistent",
     "singular_rows",
+    "RowChecks",
+    "constraint_row_checks",
 ]
 
 
@@ -93,11 +98,19 @@ def constraints_affine(mech, q, qd, t, params, A=None, a=None):
 
     A = jax.jacfwd(c)(qd) if A is None else A
     a = c(jnp.zeros_like(qd)) if a is None else a
-    tiny = jnp.finfo(q.dtype).tiny
-    tol = jnp.sqrt(jnp.finfo(q.dtype).eps)
+    e = _probe(qd)
+    return _affine(c(qd + e) - 2 * c(qd) + c(qd - e), A, a, qd, e)
+
+
+def _probe(qd):
+    """The direction of `constraints_affine`'s second difference: fixed, not along qd, on qd's scale."""
     k = jnp.arange(qd.shape[0], dtype=qd.dtype)
-    e = (1.0 + jnp.max(jnp.abs(qd))) * jnp.cos(1.0 + 2.3 * k)
-    second = c(qd + e) - 2 * c(qd) + c(qd - e)
+    return (1.0 + jnp.max(jnp.abs(qd))) * jnp.cos(1.0 + 2.3 * k)
+
+
+def _affine(second, A, a, qd, e):
+    tiny = jnp.finfo(qd.dtype).tiny
+    tol = jnp.sqrt(jnp.finfo(qd.dtype).eps)
     return jnp.all(jnp.abs(second) <= tol * (jnp.abs(A) @ (jnp.abs(qd) + jnp.abs(e)) + jnp.abs(a) + tiny))
 
 
@@ -180,41 +193,95 @@ def _normalised_rows(A):
     return A / jnp.where(n > 0, n, 1.0)[:, None], n
 
 
-def _singular_values(As):
-    """Singular values of the row-normalised A (m,), largest first; rows beyond the number of
-    coordinates add exact zeros (they must depend on the others)."""
-    m, n = As.shape
-    S = jnp.linalg.svd(jax.lax.stop_gradient(As), compute_uv=False)
-    return jnp.concatenate([S, jnp.zeros((max(m - n, 0),), As.dtype)]) if m > n else S
+def _row_svd(A):
+    """(row-normalised A, its row norms, U, S, Vt): the one SVD that `nearly_dependent` and
+    `consistent` share (no derivative flows through either check)."""
+    As, n = _normalised_rows(A)
+    U, S, Vt = jnp.linalg.svd(jax.lax.stop_gradient(As), full_matrices=False)
+    return As, n, U, S, Vt
 
 
-def nearly_dependent(A):
+def nearly_dependent(A, svd=None):
     """Whether the constraint rows are nearly, but not exactly, dependent: a singular value of
     the row-normalised A in (DEPENDENT_BELOW · eps, `independent_above`) × the largest. Rows that
-    are dependent to rounding (a constraint written twice) and independent rows both pass."""
+    are dependent to rounding (a constraint written twice) and independent rows both pass.
+    Rows beyond the number of coordinates must depend on the others (they add singular values of
+    exactly zero, which pass). `svd`: `_row_svd(A)`, when the caller has it."""
     if A.shape[0] < 2:
         return jnp.asarray(False)
     eps = jnp.finfo(A.dtype).eps
-    S = _singular_values(_normalised_rows(A)[0])
+    S = (_row_svd(A) if svd is None else svd)[3]
     r = S / jnp.where(S[0] > 0, S[0], 1.0)
     return jnp.any((r > DEPENDENT_BELOW * eps) & (r < independent_above(A.dtype)))
 
 
-def consistent(A, c, qd, a):
+def consistent(A, c, qd, a, svd=None):
     """Whether qd meets the constraints `c = A qd + a` (m,) at their tolerance: each residual
     within `consistency_tolerance`, and the minimum-norm correction δ (A δ = c over the
-    independent rows) within DISTANCE_FACTOR × the per-row allowances in velocity units."""
+    independent rows) within DISTANCE_FACTOR × the per-row allowances in velocity units.
+    `svd`: `_row_svd(A)`, when the caller has it."""
     tol = consistency_tolerance(A, qd, a)
     rows = jnp.all(jnp.isfinite(c)) & jnp.all(jnp.abs(c) <= tol)
     if A.shape[0] < 2:
         return rows
     eps = jnp.finfo(A.dtype).eps
-    As, n = _normalised_rows(A)
+    _, n, U, S, Vt = _row_svd(A) if svd is None else svd
     safe = jnp.where(n > 0, n, 1.0)
-    U, S, Vt = jnp.linalg.svd(jax.lax.stop_gradient(As), full_matrices=False)
     keep = S > DEPENDENT_BELOW * eps * S[0]
     Sinv = jnp.where(keep, 1.0 / jnp.where(keep, S, 1.0), 0.0)
     cs = jax.lax.stop_gradient(c) / safe
     delta = Vt.T @ (Sinv * (U.T @ cs))
     allowed = DISTANCE_FACTOR * scaled_norm(jax.lax.stop_gradient(tol) / safe)
     return rows & (scaled_norm(delta) <= allowed)
+
+
+class RowChecks(NamedTuple):
+    """The checks of the constraint rows at an initial state, in the order a failure is reported.
+
+    `leading` (finite, every row involves a velocity, declared-linear rows are linear, rows not
+    nearly dependent) come before a solver's own checks, `trailing` (qd0 meets the rows, no row at
+    a fold) after them; each is a tuple of (passed, STATUS of its failure). `A` = ∂c/∂qd (m, s)."""
+
+    A: jax.Array
+    leading: tuple
+    trailing: tuple
+
+
+def constraint_row_checks(mech, q, qd, t, params, held: Optional[tuple] = None) -> RowChecks:
+    """The checks of the constraint rows at (q, qd, t), sharing one evaluation of ∂c/∂qd, one
+    batched evaluation of c (at qd = 0 and the two points of `constraints_affine`'s second
+    difference) and one SVD. `held`: the rows qd must meet (default all; a friction solve's
+    sliding contacts are not held)."""
+
+    def c(v):
+        return mech.constraint(q, v, t, params)
+
+    c0, A = value_and_jacfwd(c, qd)
+    linear = not (mech.nonlinear_constraints or mech.constraints is None)
+    e = _probe(qd)
+    points = jnp.stack([jnp.zeros_like(qd), qd + e, qd - e] if linear else [jnp.zeros_like(qd)])
+    values = jax.vmap(c)(points)
+    a = values[0]
+    linear_ok = _affine(values[1] - 2 * c0 + values[2], A, a, qd, e) if linear else jnp.asarray(True)
+    finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
+    velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
+    m = A.shape[0]
+    svd = _row_svd(A) if m >= 2 else None
+    near = nearly_dependent(A, svd)
+    if held is None or held == tuple(range(m)):
+        on_manifold = consistent(A, c0, qd, a, svd)
+    elif held:
+        on_manifold = consistent(jnp.stack([A[i] for i in held]), pick(c0, held), qd, pick(a, held))
+    else:
+        on_manifold = jnp.asarray(True)
+    leading = (
+        (finite, STATUS.constraints_not_finite),
+        (~velocity_free, STATUS.velocity_free_constraint),
+        (linear_ok, STATUS.constraints_nonlinear),
+        (~near, STATUS.constraints_nearly_dependent),
+    )
+    trailing = (
+        (on_manifold, STATUS.inconsistent_velocities),
+        (~singular_rows(A, qd, a), STATUS.constraint_jacobian_singular),  # (met, but at a fold)
+    )
+    return RowChecks(A, leading, trailing)

@@ -25,7 +25,7 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import partition_quality
 from jaxnh._equations.terms import mass_and_velocity_terms
-from jaxnh._model.checks import consistent, constraints_affine, mass_matrix_check, nearly_dependent, singular_rows
+from jaxnh._model.checks import constraint_row_checks, mass_matrix_check
 
 
 __all__ = [
@@ -130,29 +130,10 @@ def initial_checks(form, q, qd, t, params):
         status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)
         ok = ok & on
     if form.m:
-
-        def c(v):
-            return mech.constraint(q, v, t, params)
-
-        c0, A = value_and_jacfwd(c, qd)
-        a = c(jnp.zeros_like(qd))
-        finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
-        velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
-        singular = singular_rows(A, qd, a)
-        on_manifold = consistent(A, c0, qd, a)
-        linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
-        near = nearly_dependent(A)
-        form_ok, form_status = form.check(q, qd, t, params)
+        rows = constraint_row_checks(mech, q, qd, t, params)
+        form_ok, form_status = form.check_given(q, qd, t, params, rows.A, inertias)
         # the first failure in this order is reported
-        for good, item in (
-            (finite, STATUS.constraints_not_finite),
-            (~velocity_free, STATUS.velocity_free_constraint),
-            (linear_ok, STATUS.constraints_nonlinear),
-            (~near, STATUS.constraints_nearly_dependent),
-            (form_ok, form_status),
-            (on_manifold, STATUS.inconsistent_velocities),
-            (~singular, STATUS.constraint_jacobian_singular),  # (met, but at a fold)
-        ):
+        for good, item in (*rows.leading, (form_ok, form_status), *rows.trailing):
             status = STATUS.where(ok & ~good, item, status)
             ok = ok & good
     return ok, status, inertias
@@ -188,7 +169,7 @@ def diagnose_stall(form, y, t, params, status, start_inertias: Optional[jax.Arra
         status = STATUS.where(stalled & finite & unsolved, STATUS.nonlinear_constraints_unsolved, status)
         stalled = stalled & ~unsolved
     if isinstance(form, Appell) and form.m:
-        ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m)[0]
+        ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m, inertias=d1)[0]
         status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
     return status
 

@@ -72,12 +72,9 @@ from jaxnh._equations.step_maps import StepMaps
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms, projected_terms
 from jaxnh._model.checks import (
     consistency_tolerance,
-    consistent,
+    constraint_row_checks,
     constraint_scale,
-    constraints_affine,
     mass_matrix_ok,
-    nearly_dependent,
-    singular_rows,
 )
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
@@ -703,19 +700,8 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     pd = mass_matrix_ok(mech, q, qd, t, params)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
-    c0, A = value_and_jacfwd(lambda v: mech.constraint(q, v, t, params), qd)
-    a = mech.constraint(q, jnp.zeros_like(qd), t, params)
-    finite = jnp.all(jnp.isfinite(A)) & jnp.all(jnp.isfinite(c0)) & jnp.all(jnp.isfinite(a))
-    velocity_free = jnp.any(jnp.sum(A * A, axis=1) == 0)
-    singular = singular_rows(A, qd, a)
-    linear_ok = constraints_affine(mech, q, qd, t, params, A, a)
-    near = nearly_dependent(A)
-    held = f.held
-    if held:
-        Ah = jnp.stack([A[i] for i in held])
-        on_manifold = consistent(Ah, pick(c0, held), qd, pick(a, held))
-    else:
-        on_manifold = jnp.asarray(True)
+    rows = constraint_row_checks(mech, q, qd, t, params, f.held)
+    A = rows.A
     N, mus, muk = f.values(q, qd, t, params)
     values_ok = jnp.all(jnp.isfinite(jnp.stack([N, mus, muk]))) & jnp.all(N >= 0) & jnp.all(muk >= 0)
     values_ok = values_ok & jnp.all(mus >= muk)
@@ -731,14 +717,10 @@ def _initial_checks(f: _Friction, q, qd, t, params):
         status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
         ok = ok & agrees
     for good, item in (
-        (finite, STATUS.constraints_not_finite),
-        (~velocity_free, STATUS.velocity_free_constraint),
-        (linear_ok, STATUS.constraints_nonlinear),
-        (~near, STATUS.constraints_nearly_dependent),
+        *rows.leading,
         (values_ok, STATUS.friction_values_invalid),
         (split_ok, STATUS.singular_split),
-        (on_manifold, STATUS.inconsistent_velocities),
-        (~singular, STATUS.constraint_jacobian_singular),  # (met, but at a fold)
+        *rows.trailing,
     ):
         status = STATUS.where(ok & ~good, item, status)
         ok = ok & good
