@@ -195,6 +195,31 @@ def test_automatic_split_of_many_constraints_is_not_refused():
     assert not bool(ok) and status == nh.STATUS.singular_split
 
 
+def test_check_given_agrees_with_check_and_keeps_a_subclass_check():
+    """`check_given` (what simulate calls, with ∂c/∂qd and the inertias its own checks evaluated)
+    gives `check`'s verdict, for a regular and a singular fixed split and the automatic one; a
+    subclass that overrides `check` has its own check run by simulate."""
+    from jaxnh._model.checks import mass_matrix_check
+
+    q, qd, t = random_state(jax.random.PRNGKey(5))
+    A = jax.jacfwd(lambda v: MECH.constraint(q, v, t, P))(qd)
+    inertias = mass_matrix_check(MECH, q, qd, t, P)[1]
+    s, m = q.shape[0], A.shape[0]
+    for independent, good in ((None, True), ((2, 3), True), ((1, 3), False)):
+        form = nh.Appell(independent=independent).bind(MECH, s, m)
+        ok, status = form.check(q, qd, t, P)
+        ok_given, status_given = form.check_given(q, qd, t, P, A, inertias)
+        assert bool(ok) == bool(ok_given) == good and bool(status == status_given)
+
+    class Refusing(nh.Appell):
+        def check(self, q, qd, t, params):
+            ok, _ = super().check(q, qd, t, params)
+            return ok & False, nh.STATUS.singular_split
+
+    sol = nh.simulate(MECH, P, q, qd, jnp.linspace(0.0, 0.1, 3), method=Refusing(), throw=False)
+    assert sol.status == nh.STATUS.singular_split
+
+
 def test_appell_leaving_the_root_of_a_nonlinear_constraint_fails_clearly():
     """ż² + (x + a) ż − 1 = 0 with a free ẋ = −1: the motion follows the root
     ż = (−u + √(u² + 4))/2, u = x + a, through u = 0 (Lagrange's run, checked against it). Appell's

@@ -166,7 +166,7 @@ class Appell(Formulation):
         return _Partitioning(self.traced and self.repartition)
 
     def check(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> tuple[jax.Array, STATUS]:
-        return self.check_given(q, qd, t, params, None, None)
+        return self._checked(q, qd, t, params, None, None)
 
     def check_given(
         self,
@@ -177,6 +177,12 @@ class Appell(Formulation):
         A: Optional[jax.Array],
         inertias: Optional[jax.Array],
     ) -> tuple[jax.Array, STATUS]:
+        if type(self).check is not Appell.check:  # a subclass's own check is the one to run
+            return self.check(q, qd, t, params)
+        return self._checked(q, qd, t, params, A, inertias)
+
+    def _checked(self, q, qd, t, params, A, inertias) -> tuple[jax.Array, STATUS]:
+        """`check` with A = ∂c/∂qd and the inertias at the state when given (None: evaluated here)."""
         if self.m == 0:
             return jnp.asarray(True), STATUS.successful  # pyright: ignore[reportReturnType]
         tiny = 1e3 * jnp.finfo(q.dtype).eps
