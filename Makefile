@@ -6,7 +6,7 @@
 #                   warm builds reuse executed examples from .cache/docs-exec; JAXNH_DOCS_CACHE=off to re-run all
 # make docs-serve — the same, served with live reload at http://127.0.0.1:8000
 # make lint       — ruff check, ruff format --check, pyright
-# make bench      — run the benchmark suite, regenerate benchmarks/RESULTS.md and figures (1–1.5 h on 2 cores)
+# make bench      — run the benchmark suite, regenerate benchmarks/RESULTS.md and figures (25–45 min on 2 cores)
 # make bench-quick — the short suite (about 10 minutes), written to benchmarks/quick/
 # make bench-stale — fail when benchmarks/RESULTS.md was measured on other jaxnh/ sources than today's
 
