@@ -390,3 +390,49 @@ def test_holonomic_q0_off_the_constraint_is_refused():
         assert bool((both == nh.STATUS.holonomic_violated)[0])
         qd_on = jnp.array([-jnp.sin(0.3), jnp.cos(0.3)])
         assert bool(nh.simulate(mech, {}, on, qd_on, ts, method).success)
+
+
+def test_forward_only_outputs_keep_forward_mode_and_refuse_reverse_mode():
+    """`jaxnh._base.modes.forward_only` (what simulate applies to the outputs of a solve by
+    diffrax.ForwardMode()): the identity in value and in every forward-mode derivative, eagerly and
+    under jit and vmap, so the results equal those without it exactly; reverse mode through an
+    output that carries a cotangent raises its message, eagerly and under jit and vmap; an output
+    the loss does not use does not."""
+    from jaxnh._base.modes import forward_only
+
+    def plain(x):
+        return jnp.sin(2.0 * x) * x[::-1]
+
+    def guarded(x):
+        return jnp.sin(2.0 * forward_only(x, "refused: use jax.jacfwd")) * x[::-1]
+
+    x = jnp.array([0.3, -1.2, 2.0])
+    xs = jnp.stack([x, 2.0 * x])
+    v = jnp.array([1.0, 0.5, -2.0])
+
+    def same(a, b):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    same(guarded(x), plain(x))
+    same(jax.jit(guarded)(x), jax.jit(plain)(x))  # (each against its own kind: jit's fusions round apart)
+    same(jax.vmap(guarded)(xs), jax.vmap(plain)(xs))
+    same(jax.jvp(guarded, (x,), (v,))[1], jax.jvp(plain, (x,), (v,))[1])
+    same(jax.jit(jax.jacfwd(guarded))(x), jax.jit(jax.jacfwd(plain))(x))
+    same(jax.vmap(jax.jacfwd(guarded))(xs), jax.vmap(jax.jacfwd(plain))(xs))
+    same(jax.jacfwd(jax.jacfwd(guarded))(x), jax.jacfwd(jax.jacfwd(plain))(x))
+
+    def loss(y):
+        return jnp.sum(guarded(y))
+
+    for call in (
+        lambda: jax.grad(loss)(x),
+        lambda: jax.jit(jax.grad(loss))(x),
+        lambda: jax.vmap(jax.grad(loss))(xs),
+        lambda: jax.jacrev(guarded)(x),
+        lambda: jax.vjp(guarded, x)[1](v),
+    ):
+        with pytest.raises(TypeError, match="refused: use jax.jacfwd"):
+            call()
+    # a loss that does not use the guarded output: its cotangent is zero, nothing to refuse
+    g = jax.grad(lambda y: jnp.sum(y**2) + 0.0 * jnp.sum(jax.lax.stop_gradient(forward_only(y, "unused"))))(x)
+    same(g, 2 * x)

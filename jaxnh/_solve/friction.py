@@ -79,7 +79,7 @@ from jaxnh._model.checks import (
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
-from jaxnh._solve.sensitivity import diffrax_solve, ForwardSensitivity
+from jaxnh._solve.sensitivity import diffrax_solve, forward_mode_outputs, ForwardSensitivity
 from jaxnh._solve.solution import Solution
 from jaxnh._solve.stepping import coarse_interpolant
 
@@ -826,6 +826,8 @@ def _run_traced(
             adjoint=adjoint,
             event=event,
         )
+        # (with contacts, a ForwardSensitivity() given is served by ForwardMode: see simulate_friction)
+        sol = forward_mode_outputs(sol, adjoint, "diffrax.ForwardMode() (or ForwardSensitivity(), which becomes it)")
         stats = jnp.stack(
             [sol.stats["num_steps"], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]]
         ).astype(jnp.int32)

@@ -40,11 +40,12 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from jaxnh._base.compat import no_host_callbacks
+from jaxnh._base.modes import forward_only
 from jaxnh._base.types import PyTree
 from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
 
 
-__all__ = ["ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "choose_adjoint", "diffrax_solve"]
+__all__ = ["ForwardSensitivity", "FORWARD_MAX_PARAMETERS", "choose_adjoint", "diffrax_solve", "forward_mode_outputs"]
 
 FORWARD_MAX_PARAMETERS = 64
 """Above this many float scalars in (params, q0, qd0) the automatic choice is reverse mode."""
@@ -168,6 +169,21 @@ def diffrax_solve(
             throw=False,
             **kwargs,
         )
+
+
+def forward_mode_outputs(tree, adjoint, given: str = "diffrax.ForwardMode()"):
+    """`tree` (a solve's outputs) as it is; when `adjoint` is `diffrax.ForwardMode()`, reverse-mode
+    differentiation through it raises a `TypeError` naming the adjoint (`given`, as the user passed
+    it) and the fix, instead of JAX's words about transposing a while loop."""
+    if not isinstance(adjoint, diffrax.ForwardMode):
+        return tree
+    return forward_only(
+        tree,
+        f"simulate: adjoint={given} differentiates the solve in forward mode only (jax.jvp, jax.jacfwd, "
+        "jax.linearize): reverse mode (jax.grad, jax.jacrev, jax.vjp) cannot go through its loop. For reverse mode "
+        "pass adjoint=diffrax.RecursiveCheckpointAdjoint() (or leave the default adjoint), or take the derivative "
+        "with jax.jacfwd",
+    )
 
 
 def _default_norm(controller) -> bool:

@@ -38,7 +38,7 @@ from jaxnh._solve.diagnose import diagnose_stall, initial_checks, on_branch, spe
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.rk import UnrolledTsit5
-from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, ForwardSensitivity
+from jaxnh._solve.sensitivity import choose_adjoint, diffrax_solve, forward_mode_outputs, ForwardSensitivity
 from jaxnh._solve.solution import DenseMotion, Expansion, Solution
 from jaxnh._solve.stepping import coarse_interpolant
 
@@ -815,6 +815,7 @@ def _run_traced(
             progress_meter=progress_meter,
             **kw,
         )
+        sol = forward_mode_outputs(sol, adjoint)
         out_ts, ys, result, stats = sol.ts, sol.ys, sol.result, sol.stats
         event_mask, interpolation = sol.event_mask, sol.interpolation
         if boolean:

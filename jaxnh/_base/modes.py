@@ -1,0 +1,54 @@
+"""Outputs that may be differentiated in forward mode only, and say so when reverse mode is tried.
+
+A solve by `diffrax.ForwardMode()` carries tangents through a `lax.while_loop`: `jax.jvp` and
+`jax.jacfwd` go through it, but reverse mode (`jax.grad`, `jax.jacrev`, `jax.vjp`) must transpose
+the loop, which JAX cannot do, and JAX's own message names neither the adjoint nor the fix. The
+refusal has to happen when JAX transposes the program, after the solve has returned, so it is
+a rule of the program itself.
+
+`forward_only(tree, message)` passes every inexact array of `tree` through the identity
+primitive `jaxnh_forward_only`. Its derivative is itself (it is linear), so values, `jit`, `vmap`,
+`jax.jvp`, `jax.jacfwd` and higher forward derivatives are unchanged; its transpose, which only
+reverse mode asks for, raises `TypeError(message)`. On the program's outputs it is transposed
+before the loop behind it, so the user reads the message and not JAX's. A zero cotangent (an
+output the loss does not use) transposes without asking the rule.
+
+It is built with JAX's public interface for primitives (`jax.extend.core.Primitive` and the rule
+tables of `jax.interpreters`, the interface JAX documents for defining primitives).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
+
+
+__all__ = ["forward_only"]
+
+
+_forward_only_p = Primitive("jaxnh_forward_only")
+_forward_only_p.def_impl(lambda x, *, message: x)
+_forward_only_p.def_abstract_eval(lambda x, *, message: x)
+mlir.register_lowering(_forward_only_p, lambda ctx, x, *, message: [x])
+
+
+def _batch(args, dims, *, message):
+    return _forward_only_p.bind(args[0], message=message), dims[0]
+
+
+def _transpose(cotangent, x, *, message):
+    raise TypeError(message)
+
+
+batching.primitive_batchers[_forward_only_p] = _batch
+ad.deflinear2(_forward_only_p, _transpose)
+
+
+def forward_only(tree, message: str):
+    """`tree` unchanged in value and forward-mode derivative; reverse-mode differentiation through
+    any of its inexact arrays raises `TypeError(message)`."""
+    return jax.tree_util.tree_map(
+        lambda x: _forward_only_p.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree
+    )
