@@ -31,6 +31,7 @@ from jaxnh._analysis.friction_margin import stick_margin, StickMargin  # noqa: E
 from jaxnh._analysis.linearize import Linearization, linearize  # noqa: E402
 from jaxnh._analysis.sweep import sweep  # noqa: E402
 from jaxnh._base.cache import enable_compilation_cache  # noqa: E402
+from jaxnh._base.compile import COMPILER_OPTIONS  # noqa: E402
 from jaxnh._base.status import InvalidInitialState, SimulationError, STATUS  # noqa: E402
 from jaxnh._equations import (  # noqa: E402
     accelerations,
@@ -94,6 +95,7 @@ __all__ = [
     "stick_margin",
     "StickMargin",
     "enable_compilation_cache",
+    "COMPILER_OPTIONS",
     "Appell",
     "Lagrange",
     "Substituted",

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnh._base.compile import lean_jit
+from jaxnh._base.compile import _outermost_jit, lean_jit, one_shot_jit, solve_jit
 
 
 def counted(fn):
@@ -112,3 +112,21 @@ def test_compiler_options_apply_and_an_unknown_option_falls_back_to_xla_defaults
     assert float(unknown(jnp.asarray(2.5))) == 5.0
     # under a transformation the options are left out (JAX refuses them on a nested program)
     assert float(jax.jit(lambda x: known(x) + 1)(jnp.asarray(1.5))) == 4.0
+
+
+@pytest.mark.parametrize("jit", [solve_jit, one_shot_jit, lambda f: _outermost_jit(f, {"xla_no_such_option": True})])
+def test_outermost_programs_compile_with_options_and_compose(jit):
+    """`solve_jit` and `one_shot_jit` (jaxnh's programs around solves, and those run a few times):
+    options on a concrete call; the plain program under vmap and grad, with concrete arguments
+    closed over inside a caller's jit (JAX refuses options on a nested program: this raised before),
+    and for an option this XLA does not know. An error raised inside reads as equinox's."""
+    g = jit(lambda p, x: eqx.error_if(p["k"] * jnp.sin(x), x < 0, "x must be ≥ 0: pass a distance"))
+    p, x = {"k": jnp.asarray(3.0)}, jnp.asarray(0.5)
+    assert float(g(p, x)) == pytest.approx(3 * np.sin(0.5), rel=1e-15)
+    assert float(jax.jit(lambda: g(p, x))()) == pytest.approx(3 * np.sin(0.5), rel=1e-15)
+    assert float(jax.grad(lambda q: g(q, x))(p)["k"]) == pytest.approx(np.sin(0.5), rel=1e-15)
+    batch = jax.vmap(lambda k: g({"k": k}, x))(jnp.asarray([1.0, 2.0]))
+    np.testing.assert_allclose(batch, [np.sin(0.5), 2 * np.sin(0.5)], rtol=1e-15)
+    with pytest.raises(Exception, match="x must be ≥ 0: pass a distance") as info:
+        g(p, jnp.asarray(-1.0))
+    assert not isinstance(info.value, jax.errors.JaxRuntimeError)

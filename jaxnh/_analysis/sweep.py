@@ -38,6 +38,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from jaxnh._base.compile import solve_jit
 from jaxnh._base.types import PyTree
 
 
@@ -224,7 +225,7 @@ class _Layout(eqx.Module):
         return jax.tree_util.tree_unflatten(self.treedef, leaves)
 
 
-@eqx.filter_jit
+@solve_jit
 def _run_chunk(fn, layout: _Layout, mesh: Mesh, batched, shared):
     """One chunk: shard_map over the mesh, vmap over each device's members.
 

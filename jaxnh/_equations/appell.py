@@ -49,7 +49,6 @@ from jaxnh._base.status import STATUS
 from jaxnh._equations.base import Formulation, multipliers_from_accelerations
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._equations.split import (
-    best_block_margin,
     best_partition,
     block_determinant,
     constraint_matrix,
@@ -57,6 +56,7 @@ from jaxnh._equations.split import (
     partition_quality,
     resolve_independent,
     select,
+    split_regular,
     SWITCH_BELOW,
     VelocitySplit,
 )
@@ -185,14 +185,9 @@ class Appell(Formulation):
         """`check` with A = ∂c/∂qd and the inertias at the state when given (None: evaluated here)."""
         if self.m == 0:
             return jnp.asarray(True), STATUS.successful  # pyright: ignore[reportReturnType]
-        tiny = 1e3 * jnp.finfo(q.dtype).eps
         mech = self.bound_mech
-        if self.traced:  # the best block singular to rounding: smallest singular value below 1e3 eps
-            ok = best_block_margin(mech, q, qd, t, params, self.m, A, inertias) > tiny
-        else:
-            part = self.partition(None)
-            ratio, _, _ = partition_quality(mech, q, qd, t, params, part, self.s - self.m, A, inertias)
-            ok = ratio > tiny
+        fixed = None if self.traced else self.partition(None)
+        ok = split_regular(mech, q, qd, t, params, self.s, self.m, fixed, A, inertias)
         # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
         status = STATUS.where(ok, STATUS.successful, STATUS.singular_split)  # pyright: ignore[reportArgumentType]
         if self.bound_mech.nonlinear_constraints:  # the dependent velocities must be solvable at the start

@@ -234,6 +234,21 @@ def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int
     return ratio, det, partition_from_dependent(dep, s)
 
 
+def split_regular(mech: Mechanism, q, qd, t, params, s: int, m: int, independent=None, A=None, inertias=None):
+    """Whether Appell's split at a state is usable, the one test of every solve's initial checks:
+    for the automatic split (`independent` None), the best dependent block's smallest singular
+    value (`best_block_margin`) is above 1e3 eps; for fixed `independent` velocities, their
+    block's |det| is above 1e3 eps of the best block's (`partition_quality`). Both judge the
+    row-normalised, mass-scaled A, so neither depends on units or, for the automatic split,
+    on m. `A`, `inertias`: as for `mass_scaled_matrix`."""
+    tiny = 1e3 * jnp.finfo(q.dtype).eps
+    if m == 0:
+        return jnp.asarray(True)
+    if independent is None:
+        return best_block_margin(mech, q, qd, t, params, m, A, inertias) > tiny
+    return partition_quality(mech, q, qd, t, params, independent, s - m, A, inertias)[0] > tiny
+
+
 def _one_hot(perm, s, dtype):
     return jax.nn.one_hot(perm, s, dtype=dtype)  # P[j, perm[j]] = 1
 
@@ -334,7 +349,7 @@ class VelocitySplit(eqx.Module):
         if self.m == 0:
             return place(v, v[:0], part)
         if not self.mech.nonlinear_constraints:
-            return self._linear_velocities(q, v, t, params, part)
+            return self.linear_velocities(q, v, t, params, part)[0]
 
         def c_dep(x):
             return self.mech.constraint(q, place(v, x, part), t, params)
@@ -370,21 +385,17 @@ class VelocitySplit(eqx.Module):
 
     def linear_velocities(self, q, v, t, params, part: Partition) -> tuple[jax.Array, jax.Array]:
         """For constraints linear in the velocities: (qd (s,) from v (k,), A = ∂c/∂qd (m, s)), the
-        matrix the solve for qd used (it does not depend on qd), for a caller that needs both."""
-        a, A = value_and_jacfwd(lambda u: self.mech.constraint(q, u, t, params), jnp.zeros((self.s,), q.dtype))
-        AI, AD = _columns(A, part, self.k)
+        matrix the solve for qd used (it does not depend on qd), for a caller that needs both.
+        qd comes from `A_D q̇_D = −(A_I v + a)` alone (no B or β to trace)."""
+        a, A, AI, AD = self._linear_terms(q, t, params, part)
         return place(v, solve_square(AD, -(jnp.sum(AI * v, axis=1) + a)), part), A
 
     def _linear_terms(self, q, t, params, part: Partition):
-        """a = c(q, 0, t) and the columns A_I, A_D of A = ∂c/∂q̇ (one pass over c)."""
+        """a = c(q, 0, t), A = ∂c/∂q̇ and its columns A_I, A_D (one pass over c)."""
         mech = self.mech
         a, A = value_and_jacfwd(lambda u: mech.constraint(q, u, t, params), jnp.zeros((self.s,), q.dtype))
         AI, AD = _columns(A, part, self.k)
-        return a, AI, AD
-
-    def _linear_velocities(self, q, v, t, params, part: Partition):
-        """q̇ from `A_D q̇_D = −(A_I v + a)` alone (no B or β to trace)."""
-        return self.linear_velocities(q, v, t, params, part)[0]
+        return a, A, AI, AD
 
     def _linear(self, q, v, t, params, part: Partition):
         """For `A q̇ + a = 0`: `B = [I; −A_D⁻¹ A_I]` and `A_D β_D = −b` written out.
@@ -394,7 +405,7 @@ class VelocitySplit(eqx.Module):
         12.2k → 8.4k traced operations).
         """
         mech, k = self.mech, self.k
-        a, AI, AD = self._linear_terms(q, t, params, part)
+        a, _, AI, AD = self._linear_terms(q, t, params, part)
         # one elimination gives the dependent velocities and the columns of B
         X = solve_square(AD, -jnp.concatenate([(jnp.sum(AI * v, axis=1) + a)[:, None], AI], axis=1))
         qd = place(v, X[:, 0], part)

@@ -39,7 +39,6 @@ from jaxnh._base.status import STATUS
 
 
 __all__ = [
-    "mass_matrix_ok",
     "mass_matrix_check",
     "constraint_scale",
     "consistency_tolerance",
@@ -52,13 +51,9 @@ __all__ = [
 ]
 
 
-def mass_matrix_ok(mech, q, qd, t, params) -> jax.Array:
-    """Whether ∂²T/∂qd² at the state is finite and positive definite (Jacobi-scaled test)."""
-    return mass_matrix_check(mech, q, qd, t, params)[0]
-
-
 def mass_matrix_check(mech, q, qd, t, params) -> tuple[jax.Array, jax.Array]:
-    """(`mass_matrix_ok`, the matrix's diagonal: the inertias, in kg·m² or kg)."""
+    """(whether ∂²T/∂qd² at the state is finite and positive definite (Jacobi-scaled test), the
+    matrix's diagonal: the inertias, in kg·m² or kg)."""
     eps = jnp.finfo(q.dtype).eps
     tiny = jnp.finfo(q.dtype).tiny
     M = jax.hessian(lambda v: mech.kinetic(q, v, t, params))(qd)

@@ -67,14 +67,14 @@ from jaxnh._base.linalg import (
 )
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
 from jaxnh._equations import Appell, Formulation, Lagrange
-from jaxnh._equations.split import best_partition, block_determinant, permutation, place, select
+from jaxnh._equations.split import best_partition, block_determinant, permutation, place, select, split_regular
 from jaxnh._equations.step_maps import StepMaps
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms, projected_terms
 from jaxnh._model.checks import (
     consistency_tolerance,
     constraint_row_checks,
     constraint_scale,
-    mass_matrix_ok,
+    mass_matrix_check,
 )
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
@@ -697,7 +697,7 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     consistency of the rows that friction does not hold, the contacts' values and, for Appell's
     form, a regular dependent block."""
     mech = f.mech
-    pd = mass_matrix_ok(mech, q, qd, t, params)
+    pd, inertias = mass_matrix_check(mech, q, qd, t, params)
     status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
     ok = pd
     rows = constraint_row_checks(mech, q, qd, t, params, f.held)
@@ -706,12 +706,8 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     values_ok = jnp.all(jnp.isfinite(jnp.stack([N, mus, muk]))) & jnp.all(N >= 0) & jnp.all(muk >= 0)
     values_ok = values_ok & jnp.all(mus >= muk)
     split_ok = jnp.asarray(True)
-    if f.kind == "appell":
-        if f.independent is None:
-            split_ok = best_partition(mech, q, qd, t, params, f.s, f.m)[1] > 1e3 * jnp.finfo(q.dtype).eps
-        else:
-            det = block_determinant(A, permutation(f.independent, f.s), f.k)
-            split_ok = jnp.abs(det) > 1e3 * jnp.finfo(q.dtype).eps
+    if f.kind == "appell":  # (the test of simulate's Appell form: `Appell.check`)
+        split_ok = split_regular(mech, q, qd, t, params, f.s, f.m, f.independent, A, inertias)
     if mech.acceleration_energy is not None:
         agrees = acceleration_energy_agrees(mech, q, qd, t, params)
         status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)

@@ -46,6 +46,7 @@ import numpy as np
 import optax
 
 from jaxnh._base.compat import status_code
+from jaxnh._base.compile import solve_jit
 from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import trainable
@@ -386,7 +387,7 @@ class Prediction(Estimates):
         }
 
 
-@eqx.filter_jit
+@solve_jit
 def _jacobian(exp: Experiment, params):
     J, sol = exp.jacobian(params)
     return J, sol.multipliers, status_code(sol.status)
@@ -641,7 +642,7 @@ class DesignResult:
     best_start: int
 
 
-@eqx.filter_jit
+@solve_jit
 def _evaluate(loss: _Loss, params):
     value, pen, cov, sol = loss.terms(params)
     out = {"value": value, "status": status_code(sol.status)}

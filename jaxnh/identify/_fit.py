@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.compile import one_shot_jit, solve_jit
 from jaxnh._base.dataframe import fit_result_to_dict
 from jaxnh._base.linalg import value_and_jacfwd
 from jaxnh._base.types import ArrayInput, PyTree
@@ -240,7 +240,7 @@ def _estimate_state(problem: Problem, theta, t0):
     return (params, *problem.initial_state(theta, t0, params))
 
 
-@eqx.filter_jit
+@solve_jit
 def _trajectory(problem: Problem, theta, t):
     return problem.trajectory(theta, t)
 
@@ -690,7 +690,7 @@ def _optax_update(optimizer, theta, state, g):
     return theta + updates, state
 
 
-@eqx.filter_jit
+@solve_jit
 def _loss_and_grad_reverse(problem, theta, obs):
     def loss(th):
         res = problem.residuals(th, obs)

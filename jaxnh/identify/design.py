@@ -44,6 +44,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
+from jaxnh._base.compile import solve_jit
 from jaxnh._base.types import PyTree
 from jaxnh._model.profiles import Bounded, Profile, trainable as trainable_leaves  # noqa: F401  (Bounded re-exported)
 
@@ -157,7 +158,8 @@ def optimize(
         if callback is not None:
             callback(k, value, eqx.combine(theta, rest))
         theta = new
-    value = float(_optimize_value(loss, theta, rest))
+    # the last value by the step's program (its update unused): no second program to compile
+    value = float(_optimize_step(loss, optimizer, gradient, theta, rest, opt_state)[2])
     history.append(value)
     if value < best_value:
         best = theta
@@ -186,7 +188,7 @@ def _forward_value_and_grad(f, theta):
     return value, jax.tree_util.tree_unflatten(treedef, parts)
 
 
-@eqx.filter_jit
+@solve_jit
 def _optimize_step(loss, optimizer, gradient, theta, rest, opt_state):
     def f(th):
         return loss(eqx.combine(th, rest))
@@ -197,11 +199,6 @@ def _optimize_step(loss, optimizer, gradient, theta, rest, opt_state):
         value, g = eqx.filter_value_and_grad(f)(theta)
     updates, opt_state = optimizer.update(g, opt_state, theta)
     return eqx.apply_updates(theta, updates), opt_state, value
-
-
-@eqx.filter_jit
-def _optimize_value(loss, theta, rest):
-    return loss(eqx.combine(theta, rest))
 
 
 def multistart(

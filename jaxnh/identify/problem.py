@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnh._base.compile import one_shot_jit
+from jaxnh._base.compile import one_shot_jit, solve_jit
 from jaxnh._base.types import ArrayInput
 from jaxnh._equations import as_formulation, Lagrange
 from jaxnh._equations.split import VelocitySplit
@@ -559,7 +559,7 @@ def solve_least_squares_host(
     return solve_least_squares(problem, theta0, data, host=True, **options)
 
 
-@eqx.filter_jit
+@solve_jit
 def _levenberg_marquardt_compiled(problem: Problem, theta0, data: Observations, limits, progress):
     return _levenberg_marquardt(
         lambda theta: _jacfwd(problem, theta, data), theta0, problem.n_residuals(data), limits, progress, jnp
