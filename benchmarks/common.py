@@ -198,16 +198,17 @@ _KEEP: list = []
 
 def _executable(source: str) -> str:
     """The code of a Python module without what cannot change what it computes: comments and
-    layout (gone in the syntax tree), docstrings, and the annotations of function arguments and
-    returns (strings under `from __future__ import annotations`). Annotated assignments keep theirs:
-    a dataclass or equinox Module makes its fields from them."""
+    layout (gone in the syntax tree), string literals standing alone as statements (docstrings of
+    modules, classes and functions, and those written under an assignment), and the annotations of
+    function arguments and returns (strings under `from __future__ import annotations`). Annotated
+    assignments keep theirs: a dataclass or equinox Module makes its fields from them."""
     tree = ast.parse(source)
     for node in ast.walk(tree):
-        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
-            body = node.body
-            if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
-                if isinstance(body[0].value.value, str):
-                    node.body = body[1:] or [ast.Pass()]
+        for field in ("body", "orelse", "finalbody"):
+            stmts = getattr(node, field, None)
+            if isinstance(stmts, list):
+                kept = [x for x in stmts if not _bare_string(x)]
+                setattr(node, field, kept or ([ast.Pass()] if field == "body" else []))
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             node.returns = None
             a = node.args
@@ -215,6 +216,10 @@ def _executable(source: str) -> str:
                 if arg is not None:
                     arg.annotation = None
     return ast.dump(tree)
+
+
+def _bare_string(stmt) -> bool:
+    return isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant) and isinstance(stmt.value.value, str)
 
 
 def source_digest(root: pathlib.Path = ROOT) -> str:

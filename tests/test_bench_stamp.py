@@ -41,12 +41,21 @@ def step(x: float, h: float) -> float:
     return x + h * x
 '''
     assert _executable(edited) == _executable(BASE)
+    # a docstring written under an assignment (an attribute's, as the API pages show it) is no code
+    with_attribute_doc = BASE.replace("rate: float = 1.0", 'rate: float = 1.0\n    """Growth rate (1/s)."""')
+    assert _executable(with_attribute_doc) == _executable(BASE)
+    # ... and neither is one in a branch, alone in a body
+    branch = "if a:\n    x = 1\n    'why'\nelse:\n    'nothing to do'\n"
+    assert _executable(branch) == _executable("if a:\n    x = 1\n")
 
 
 def test_code_and_field_annotations_change_the_digest():
     assert _executable(BASE.replace("h * x", "h * x * x")) != _executable(BASE)
     # a dataclass makes its fields from annotated assignments: their annotations are code
     assert _executable(BASE.replace("rate: float = 1.0", "rate = 1.0")) != _executable(BASE)
+    # a string that is a value, not a statement of its own, is code
+    assert _executable("x = 'a'\n") != _executable("x = 'b'\n")
+    assert _executable("f('a')\n") != _executable("f('b')\n")
 
 
 def test_the_digest_of_the_package_is_a_stable_hex_stamp():

@@ -436,3 +436,42 @@ def test_forward_only_outputs_keep_forward_mode_and_refuse_reverse_mode():
     # a loss that does not use the guarded output: its cotangent is zero, nothing to refuse
     g = jax.grad(lambda y: jnp.sum(y**2) + 0.0 * jnp.sum(jax.lax.stop_gradient(forward_only(y, "unused"))))(x)
     same(g, 2 * x)
+
+
+def test_reverse_once_inputs_keep_first_derivatives_and_refuse_reverse_over_reverse():
+    """`jaxnh._base.modes.reverse_once` (what simulate applies to the inputs of a solve by a
+    reverse-mode diffrax adjoint, whose backward loop JAX cannot transpose): the identity in value
+    and in every first derivative, eagerly and under jit and vmap; forward mode over reverse mode
+    (`jax.jacfwd(jax.grad(f))`) gives the exact second derivative; reverse mode over reverse mode
+    raises its message, eagerly and under jit and vmap."""
+    from jaxnh._base.modes import reverse_once
+
+    def plain(x):
+        return jnp.sum(jnp.sin(2.0 * x) * x**2)
+
+    def guarded(x):
+        y = reverse_once(x, "refused: use jax.jacfwd(jax.grad(f))")
+        return jnp.sum(jnp.sin(2.0 * y) * y**2)
+
+    x = jnp.array([0.3, -1.2, 2.0])
+    xs = jnp.stack([x, 2.0 * x])
+    v = jnp.array([1.0, 0.5, -2.0])
+
+    def same(a, b):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    same(guarded(x), plain(x))
+    same(jax.jit(guarded)(x), jax.jit(plain)(x))
+    same(jax.jvp(guarded, (x,), (v,))[1], jax.jvp(plain, (x,), (v,))[1])
+    same(jax.grad(guarded)(x), jax.grad(plain)(x))
+    same(jax.jit(jax.grad(guarded))(x), jax.jit(jax.grad(plain))(x))
+    same(jax.vmap(jax.grad(guarded))(xs), jax.vmap(jax.grad(plain))(xs))
+    same(jax.jacfwd(jax.grad(guarded))(x), jax.jacfwd(jax.grad(plain))(x))
+    same(jax.jacfwd(jax.jacfwd(guarded))(x), jax.jacfwd(jax.jacfwd(plain))(x))
+    for call in (
+        lambda: jax.grad(lambda y: jnp.sum(jax.grad(guarded)(y)))(x),
+        lambda: jax.jit(jax.jacrev(jax.grad(guarded)))(x),
+        lambda: jax.vmap(jax.jacrev(jax.grad(guarded)))(xs),
+    ):
+        with pytest.raises(TypeError, match=r"refused: use jax\.jacfwd"):
+            call()

@@ -76,19 +76,28 @@ def _outermost_jit(fn: _F, compiler_options: dict) -> _F:
     def call(*args, **kwargs):
         if _traced((args, kwargs)):
             return programs[-1](*args, **kwargs)
-        try:
-            return programs[0](*args, **kwargs)
-        except ValueError as err:
-            if len(programs) == 1 or "compiler_options" not in str(err):
-                raise
-            return programs[-1](*args, **kwargs)  # inside a caller's jit
-        except jax.errors.JaxRuntimeError as err:
-            if len(programs) == 1 or "No such compile option" not in str(err):
-                raise
-            del programs[0]
-            return programs[0](*args, **kwargs)
+        return _with_options(programs, *args, **kwargs)
 
     return call  # pyright: ignore[reportReturnType]
+
+
+def _with_options(programs: list, *args, **kwargs):
+    """`programs[0](*args, **kwargs)`, the program compiled with XLA's options, or the last program
+    (the same one without them) where JAX or XLA refuses the options: inside a caller's jit, when
+    the arguments are concrete but closed over (JAX refuses options on a nested program before
+    anything is compiled), or when XLA no longer knows one of the options (they are XLA's debug
+    options, not promised to last); `programs[0]` is then dropped for good."""
+    try:
+        return programs[0](*args, **kwargs)
+    except ValueError as err:
+        if len(programs) == 1 or "compiler_options" not in str(err):
+            raise
+        return programs[-1](*args, **kwargs)
+    except jax.errors.JaxRuntimeError as err:
+        if len(programs) == 1 or "No such compile option" not in str(err):
+            raise
+        del programs[0]
+        return programs[0](*args, **kwargs)
 
 
 def one_shot_jit(fn: _F) -> _F:
@@ -162,23 +171,6 @@ def lean_jit(fn: _F, compiler_options: Optional[dict] = None) -> _F:
     if compiler_options:
         programs.append(jax.jit(body, static_argnums=0))  # XLA's defaults, should an option be unknown
 
-    def run(static: _Static, arrays: list):
-        try:
-            return programs[0](static, arrays)
-        except ValueError as err:
-            if len(programs) == 1 or "compiler_options" not in str(err):
-                raise
-            # concrete arguments, but inside a caller's jit (everything closed over): JAX refuses
-            # options on a nested program, before anything is compiled
-            return programs[-1](static, arrays)
-        except jax.errors.JaxRuntimeError as err:
-            if len(programs) == 1 or "No such compile option" not in str(err):
-                raise
-            # an XLA that has dropped one of the options (they are XLA's debug options, not
-            # promised to last): compile with its defaults from now on
-            del programs[0]
-            return programs[0](static, arrays)
-
     traced_call = eqx.filter_jit(fn)
 
     @functools.wraps(fn)
@@ -192,7 +184,7 @@ def lean_jit(fn: _F, compiler_options: Optional[dict] = None) -> _F:
         arrays = [x for x in leaves if isinstance(x, _ARRAY)]
         # (the tuple _ARRAY marks an array's place: no user leaf is that object)
         fixed = tuple(_ARRAY if isinstance(x, _ARRAY) else x for x in leaves)
-        out = run(_Static((treedef, fixed)), arrays)
+        out = _with_options(programs, _Static((treedef, fixed)), arrays)
         return eqx.combine(out.arrays, out.rest) if isinstance(out, _Mixed) else out
 
     return call  # pyright: ignore[reportReturnType]

@@ -25,7 +25,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
 
-__all__ = ["forward_only"]
+__all__ = ["forward_only", "reverse_once"]
 
 
 _forward_only_p = Primitive("jaxnh_forward_only")
@@ -51,4 +51,35 @@ def forward_only(tree, message: str):
     any of its inexact arrays raises `TypeError(message)`."""
     return jax.tree_util.tree_map(
         lambda x: _forward_only_p.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree
+    )
+
+
+_reverse_once_p = Primitive("jaxnh_reverse_once")
+_reverse_once_p.def_impl(lambda x, *, message: x)
+_reverse_once_p.def_abstract_eval(lambda x, *, message: x)
+mlir.register_lowering(_reverse_once_p, lambda ctx, x, *, message: [x])
+
+
+def _batch_once(args, dims, *, message):
+    return _reverse_once_p.bind(args[0], message=message), dims[0]
+
+
+def _transpose_once(cotangent, x, *, message):
+    # the cotangent of the solve's input, computed by its backward loop: itself differentiable in
+    # forward mode only, which `forward_only` says when a second reverse pass reaches it
+    return [_forward_only_p.bind(cotangent, message=message)]
+
+
+batching.primitive_batchers[_reverse_once_p] = _batch_once
+ad.deflinear2(_reverse_once_p, _transpose_once)
+
+
+def reverse_once(tree, message: str):
+    """`tree` (a solve's inputs) unchanged in value and in every first derivative; the cotangents
+    reverse mode computes for it are `forward_only(..., message)`: a reverse-mode derivative of a
+    reverse-mode derivative (`jax.grad(jax.grad(f))`), which would have to transpose the backward
+    loop that computed them, raises `TypeError(message)`, while forward mode over reverse mode
+    (`jax.jacfwd(jax.grad(f))`) passes."""
+    return jax.tree_util.tree_map(
+        lambda x: _reverse_once_p.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree
     )

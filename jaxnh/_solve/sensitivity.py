@@ -40,7 +40,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from jaxnh._base.compat import no_host_callbacks
-from jaxnh._base.modes import forward_only
+from jaxnh._base.modes import forward_only, reverse_once
 from jaxnh._base.types import PyTree
 from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
 
@@ -106,6 +106,17 @@ class ForwardSensitivity(eqx.Module):
         )
 
 
+SECOND_REVERSE = (
+    "simulate: adjoint=ForwardSensitivity() (the default for at most 64 differentiated scalars) computes its "
+    "derivatives by a forward sensitivity solve, which can itself be differentiated in forward mode only: a "
+    "derivative of a derivative with reverse mode outside (jax.grad(jax.grad(f)), jax.grad(jax.jacfwd(f)), "
+    "jax.jacrev(jax.jacrev(f))) cannot go through it. Take the outer derivative in forward mode: "
+    "jax.jacfwd(jax.grad(f)), jax.jacfwd(jax.jacfwd(f)) or jax.hessian(f), or pass adjoint=diffrax.DirectAdjoint() "
+    "(every order and mode)"
+)
+"""The refusal of a reverse-mode derivative of a derivative through `ForwardSensitivity`'s rule."""
+
+
 def _masked_rms(err, mask):
     w = jnp.sum(mask)
     return jnp.sqrt(jnp.sum(mask * err**2) / jnp.maximum(w, 1))
@@ -152,6 +163,16 @@ def diffrax_solve(
             lambda c: c.norm, controller, lambda e: _masked_rms(jax.flatten_util.ravel_pytree(e)[0], flat_mask)
         )
     kwargs = {} if progress_meter is None else {"progress_meter": progress_meter}
+    if isinstance(adjoint, (diffrax.RecursiveCheckpointAdjoint, diffrax.BacksolveAdjoint)):
+        name = type(adjoint).__name__
+        y0, args = reverse_once(
+            (y0, args),
+            f"simulate: adjoint=diffrax.{name}() differentiates the solve in reverse mode once: a reverse-mode "
+            "derivative of its derivative (jax.grad(jax.grad(f)), jax.jacrev(jax.grad(f))) cannot go through the "
+            "backward loop that computed it. For second derivatives pass adjoint=diffrax.DirectAdjoint() (every "
+            "order and mode), or adjoint=jaxnh.ForwardSensitivity() and take jax.jacfwd(jax.grad(f)) or "
+            "jax.hessian(f)",
+        )
     with no_host_callbacks():
         return diffrax.diffeqsolve(
             diffrax.ODETerm(vector_field),
@@ -351,6 +372,10 @@ def _solve_jvp(primals, tangents, *, vector_field, solver, maps, max_steps, dt0,
         error_mask=None,
         norm=norm,
     )
+    # the sensitivities are the primal values of this rule: first derivatives never transpose them,
+    # but a reverse-mode derivative of a derivative (jax.grad of jax.grad or of jax.jacfwd) would have
+    # to transpose this forward-mode solve's loop, which JAX cannot: say so, and what works instead
+    zs = forward_only(zs, SECOND_REVERSE)
     if isinstance(zs, list):  # several SubSaveAts
         ys, Ss = zip(*[jax.vmap(unravel)(z) for z in zs])
         ys, Ss = list(ys), list(Ss)
