@@ -13,7 +13,14 @@ reverse mode asks for, raises `TypeError(message)`. On the program's outputs it 
 before the loop behind it, so the user reads the message and not JAX's. A zero cotangent (an
 output the loss does not use) transposes without asking the rule.
 
-It is built with JAX's public interface for primitives (`jax.extend.core.Primitive` and the rule
+`reverse_once(tree, message)` is its counterpart for a solve differentiated by a backward loop
+(diffrax's `RecursiveCheckpointAdjoint`, `BacksolveAdjoint`): an identity on the solve's inputs,
+linear, whose transpose passes the cotangent the backward loop computed through `forward_only`.
+A first derivative in either mode, and forward mode over reverse mode, are unchanged; reverse mode
+over reverse mode (`jax.grad(jax.grad(f))`), which would have to transpose that backward loop,
+raises `TypeError(message)`.
+
+They are built with JAX's public interface for primitives (`jax.extend.core.Primitive` and the rule
 tables of `jax.interpreters`, the interface JAX documents for defining primitives).
 """
 
