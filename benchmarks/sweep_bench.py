@@ -333,7 +333,8 @@ def write_report(res, out: pathlib.Path, command: str):
     L.append("")
     L.append(
         f"Load average {res['load_before']} before the run ({res['cpu_count']} CPUs). Variator, 5 s, rtol = 1e-8, "
-        "atol = 1e-10, simulate's default solver and formulation (Lagrange's). Times: best of several runs after compilation, as "
+        "atol = 1e-10, simulate's default solver and formulation (Lagrange's). Times: best of several runs after "
+        "compilation, as "
         "wall-clock time and as the process's CPU time, in a process pinned to one core (the device scaling: fresh "
         "processes on every core); the machine may be shared with other jobs, so wall times (and the device "
         "scaling) are noisy and the CPU times are the steadier measure of cost."
