@@ -392,6 +392,17 @@ def test_holonomic_q0_off_the_constraint_is_refused():
         assert bool(nh.simulate(mech, {}, on, qd_on, ts, method).success)
 
 
+def _identity_rule_inputs():
+    """A point x, a batch of two points, a tangent, and exact equality of two arrays: for the tests
+    of jaxnh's identity primitives, whose results must equal those without them bit for bit."""
+    x = jnp.array([0.3, -1.2, 2.0])
+
+    def same(a, b):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+    return x, jnp.stack([x, 2.0 * x]), jnp.array([1.0, 0.5, -2.0]), same
+
+
 def test_forward_only_outputs_keep_forward_mode_and_refuse_reverse_mode():
     """`jaxnh._base.modes.forward_only` (what simulate applies to the outputs of a solve by
     diffrax.ForwardMode()): the identity in value and in every forward-mode derivative, eagerly and
@@ -406,12 +417,7 @@ def test_forward_only_outputs_keep_forward_mode_and_refuse_reverse_mode():
     def guarded(x):
         return jnp.sin(2.0 * forward_only(x, "refused: use jax.jacfwd")) * x[::-1]
 
-    x = jnp.array([0.3, -1.2, 2.0])
-    xs = jnp.stack([x, 2.0 * x])
-    v = jnp.array([1.0, 0.5, -2.0])
-
-    def same(a, b):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    x, xs, v, same = _identity_rule_inputs()
 
     same(guarded(x), plain(x))
     same(jax.jit(guarded)(x), jax.jit(plain)(x))  # (each against its own kind: jit's fusions round apart)
@@ -453,12 +459,7 @@ def test_reverse_once_inputs_keep_first_derivatives_and_refuse_reverse_over_reve
         y = reverse_once(x, "refused: use jax.jacfwd(jax.grad(f))")
         return jnp.sum(jnp.sin(2.0 * y) * y**2)
 
-    x = jnp.array([0.3, -1.2, 2.0])
-    xs = jnp.stack([x, 2.0 * x])
-    v = jnp.array([1.0, 0.5, -2.0])
-
-    def same(a, b):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    x, xs, v, same = _identity_rule_inputs()
 
     same(guarded(x), plain(x))
     same(jax.jit(guarded)(x), jax.jit(plain)(x))
