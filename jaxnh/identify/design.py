@@ -270,30 +270,172 @@ def multistart(
     return runs[k]["params"], runs, k
 
 
-def fd_gradient(f: Callable[[Any], Any], params: PyTree, h: float = 1e-6, trainable: Any = None) -> PyTree:
-    """Central-difference gradient of the scalar `f` over the trainable leaves
-    of `params` (default as in `optimize`, or those marked by `trainable`), with step `h` scaled
-    by `max(1, |x|)` for each entry. Returns a pytree like `params` with None
-    at the leaves not differentiated (as `equinox.filter_grad` does). Costs two evaluations per entry:
-    meant for checking `jax.grad` on a handful of design variables.
+def fd_gradient(
+    f: Callable[[Any], Any],
+    params: PyTree,
+    h: Optional[float] = None,
+    trainable: Any = None,
+    scale: Optional[float] = None,
+) -> PyTree:
+    """Central-difference gradient of the scalar `f` over the trainable leaves of `params`, to
+    check a gradient obtained by automatic differentiation.
+
+    Each entry x is moved by ±s and `∂f/∂x ≈ (f(x + s) − f(x − s)) / 2s`. The error of that
+    quotient has two parts: truncation, `s² |f'''| / 6`, and rounding of the two values of f,
+    `δ |f| / s` (δ the relative noise of f: the machine epsilon, or the tolerance of a solve
+    inside f). The step is relative to the entry, `s = h · max(|x|, floor)`, so the result
+    does not depend on the units of x: a function that varies on the scale of |x| itself
+    (`1/x`, `log x` at x = 1e-8) is differenced on a fraction h of it, and its relative error
+    is of order h² + δ/h. The floor is 0 (a purely relative step) unless rounding drowns the
+    difference, `|f(x + s) − f(x − s)| < h |f|`, which happens where f varies on a scale L much
+    longer than |x| (`exp x` at x = 1e-12, a loss 1e10 + g(x)): the step then grows towards
+    `h · L` (at most ×1e4 per trial, eight trials), and stops growing where the difference no
+    longer grows in proportion to the step (a longer step leaves the range where f is close to
+    linear, or crosses a singularity) or f is not finite. An entry at exactly 0 starts from the
+    step `h · scale`. Then the quotient at s is compared with the one at s/2 (truncation errors
+    c s² and c s²/4), and the step is shortened until they agree: where f varies on a scale
+    shorter than |x| (`cos x` at x = 1e8) the relative step is too long.
+
+    Arguments:
+        f: scalar function of the params pytree (may call `simulate`).
+        params: the point, a pytree.
+        h: the relative step. Default: `eps^(1/3)` of the entry's dtype (6.1e-6 in float64,
+            4.9e-3 in float32), which balances truncation and rounding of f at machine
+            precision, for an error of order `eps^(2/3)` (3.7e-11 in float64) of
+            `|∂f/∂x| + |f| / L`; the quotients at s and s/2 must agree to that, or a ValueError
+            says so. When f is noisier than rounding — a solve at tolerance rtol — pass
+            `h ≈ rtol^(1/3)`: the same steps are tried, and where the quotients do not agree
+            to h² the one whose two quotients agree best is returned (the caller judges it:
+            its error is of the order of that disagreement).
+        trainable: a pytree of bools marking the leaves to differentiate (default as in
+            `optimize`: the trainable leaves of profiles, every other inexact array).
+        scale: the typical magnitude of an entry, in its units: the floor of the step for
+            entries at 0 and the largest floor rounding may call for (default: unbounded, and 1
+            for entries at 0).
+
+    Returns:
+        A pytree like `params` with `∂f/∂x` at the differentiated leaves (units of f per unit
+        of x) and None at the others (as `equinox.filter_grad` does). Costs four evaluations per
+        entry (at x ± s and x ± s/2) when the relative step suffices, at most 48 when it must
+        grow or shrink: meant for checking `jax.grad` on a handful of design variables.
+
+    Raises:
+        ValueError: `h` or `scale` not a positive finite number; f not finite at `params` or
+            at x ± s for every step tried; with the default h, quotients that do not settle.
     """
+    if h is not None and not (np.ndim(h) == 0 and np.isreal(h) and 0 < float(h) < 1):
+        raise ValueError(f"fd_gradient: h (the relative step) must be a number in (0, 1); got {h!r}")
+    if scale is not None and not (np.ndim(scale) == 0 and np.isreal(scale) and 0 < float(scale) < np.inf):
+        raise ValueError(f"fd_gradient: scale (an entry's typical magnitude) must be a positive number; got {scale!r}")
+    scale = None if scale is None else float(scale)
     spec = trainable_leaves(params) if trainable is None else trainable
     theta, rest = eqx.partition(params, spec)
     leaves, treedef = jax.tree_util.tree_flatten(theta)
     f_flat = jax.jit(lambda ls: f(eqx.combine(jax.tree_util.tree_unflatten(treedef, ls), rest)))
+    f0 = float(f_flat(leaves))
+    if not np.isfinite(f0):
+        raise ValueError(f"fd_gradient: f(params) = {f0}; central differences need a finite value at params")
     grads = []
-    for i, x in enumerate(leaves):
-        x = np.asarray(x, dtype=float)
-        g = np.zeros_like(x)
+    for i, leaf in enumerate(leaves):
+        dtype = np.dtype(jnp.result_type(leaf))
+        if not np.issubdtype(dtype, np.floating):
+            raise ValueError(
+                f"fd_gradient: a leaf marked for differentiation has dtype {dtype.name}; central differences "
+                "need real floating-point leaves: mark only those in `trainable`"
+            )
+        x = np.asarray(leaf, dtype=dtype)
+        g = np.zeros(x.shape, dtype=np.float64)
+        rel = float(np.finfo(dtype).eps) ** (1 / 3) if h is None else float(h)
         for j in np.ndindex(x.shape):
-            step = h * max(1.0, abs(float(x[j])))
-            vals = []
-            for s in (step, -step):
-                xp = x.copy()
-                xp[j] += s
+
+            def value(u, j=j):
                 trial = list(leaves)
-                trial[i] = jnp.asarray(xp, dtype=leaves[i].dtype)
-                vals.append(float(f_flat(trial)))
-            g[j] = (vals[0] - vals[1]) / (2 * step)
-        grads.append(jnp.asarray(g, dtype=leaves[i].dtype))
+                xp = x.copy()
+                xp[j] = u
+                trial[i] = jnp.asarray(xp, dtype=dtype)
+                return float(f_flat(trial))
+
+            g[j] = _central_difference(value, x[j], rel, scale, f0, strict=h is None)
+        grads.append(jnp.asarray(g, dtype=dtype))
     return eqx.combine(jax.tree_util.tree_unflatten(treedef, grads), jax.tree_util.tree_map(lambda _: None, rest))
+
+
+_FD_GROWTH = 1e4  # the largest factor by which one trial lengthens the step (rounding)
+_FD_TRIALS = 8  # trials of each kind: from eps^(1/3)·1e-12 to ~1 takes four lengthenings
+
+
+def _central_difference(
+    value: Callable[[Any], float], x: Any, rel: float, scale: Optional[float], f0: float, strict: bool
+) -> float:
+    """∂f/∂x for one entry x (a NumPy scalar of the leaf's dtype) by central differences with the
+    step `fd_gradient` describes. `value(u)` is f with the entry set to u.
+
+    The quotients' denominators are the differences of the arguments as rounded to the dtype, so
+    they are exact. First the step is lengthened while rounding drowns the difference; then the
+    quotient at s is compared with the one at s/2, whose truncation errors are c s² and c s²/4:
+    they must agree to `h²` of their size plus what rounding (relative noise `h³` of f) can make
+    of them, else the step is shortened for the truncation estimate to meet it."""
+    dtype = np.asarray(x).dtype
+    noise = rel**3  # the relative noise of f that the step `rel` is right for: eps for the default
+    ax = abs(float(x))
+    cap = np.inf if scale is None else rel * max(ax, scale)
+
+    def quotient(s):
+        xp, xm = dtype.type(x + dtype.type(s)), dtype.type(x - dtype.type(s))
+        if xp == xm:
+            return None
+        fp, fm = value(xp), value(xm)
+        if not (np.isfinite(fp) and np.isfinite(fm)):
+            return None
+        return (fp - fm) / (float(xp) - float(xm)), abs(fp - fm), max(abs(fp), abs(fm), abs(f0))
+
+    # 1. rounding: lengthen the step until the difference is h of |f| (f varies on a scale L much
+    # longer than |x|: the step grows towards h·L), unless it stops growing with the step
+    s = rel * (ax if ax > 0 else (1.0 if scale is None else scale))
+    last = None  # (s, quotient) of the last step whose difference rose above rounding
+    for _ in range(_FD_TRIALS):
+        out = quotient(s)
+        if out is None:  # below the resolution of x, or f undefined at x ± s
+            if last is not None or s >= cap:
+                break
+            s = min(s * _FD_GROWTH, cap)
+            continue
+        d, df, size = out
+        floor = 64 * np.finfo(dtype).eps * size  # what rounding alone makes of the difference
+        if last is not None and df < 0.5 * last[2] * s / last[0]:
+            break  # the difference stopped growing in proportion: f is no longer close to linear
+        last = (s, d, df) if df > floor or last is None else last
+        if df >= rel * size or s >= cap:
+            break
+        s = min(s * (_FD_GROWTH if df <= floor else min(_FD_GROWTH, 2 * rel * size / df)), cap)
+    if last is None:
+        raise ValueError(
+            f"fd_gradient: f is not finite at x ± s for every step tried around the entry x = {x!r}; "
+            "check f there, or pass a smaller h"
+        )
+    s, d, _ = last
+    # 2. truncation: D(s) against D(s/2); shorten the step until they agree
+    best = None  # (gap, D(s/2)) with the smallest gap
+    for _ in range(_FD_TRIALS):
+        half = quotient(s / 2)
+        if half is None:
+            break
+        d2, _, size = half
+        gap = abs(d - d2)
+        allowed = rel**2 * max(abs(d), abs(d2)) + 4 * noise * size / s
+        if gap <= allowed:
+            return d2  # its truncation error is about gap / 3
+        best = (gap, d2) if best is None or gap < best[0] else best
+        s = s * max(1e-3, 0.5 * np.sqrt(allowed / gap))
+        out = quotient(s)
+        if out is None:
+            break
+        d = out[0]
+    if not strict and best is not None:
+        return best[1]  # the caller's h: the steps it allows, the one whose quotients agree best
+    raise ValueError(
+        f"fd_gradient: central differences around the entry x = {x!r} do not settle as the step shortens "
+        f"(last step {s:.3g}): f is noisier than h³ = {noise:.1e} of its size (a solve's tolerance), or not "
+        f"differentiable there, or varies on a scale finer than x's resolution in {dtype.name}. Pass "
+        "h ≈ (relative noise of f)^(1/3), e.g. h=1e-4 for a solve at rtol 1e-12, or params in float64."
+    )
