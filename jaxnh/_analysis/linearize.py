@@ -68,6 +68,7 @@ from jaxnh._equations.split import (
 )
 from jaxnh._model.checks import constraints_affine
 from jaxnh._model.mechanism import _state_terms, Mechanism
+from jaxnh._solve.diagnose import acceleration_energy_agrees, holonomic_consistent
 
 
 __all__ = ["Linearization", "linearize"]
@@ -159,7 +160,16 @@ def linearize(
         A `Linearization`. Invalid input raises a ValueError naming it when
         the values are concrete; under `jit`/`vmap`/`grad` constraints
         declared linear that are not (and NaN input, a singular mass matrix)
-        give NaN matrices, never a finite wrong one.
+        give NaN matrices, never a finite wrong one. Two checks `simulate`
+        makes of its initial state are made here of the operating state, by
+        the same functions, whichever `method`: the mechanism's acceleration
+        energy S, if it gives one, must agree with T at (q, qd, t)
+        (`acceleration_energy_agrees`: otherwise "appell" and "lagrange"
+        linearise two different motions), and the operating configuration
+        (after `complete`) must satisfy the holonomic constraints
+        (`holonomic_consistent`). A failure raises a ValueError naming
+        `acceleration_energy` or the holonomic constraints and the fix, or
+        under `jit`/`vmap`/`grad` makes every output NaN.
     """
     if method not in LINEAR_METHODS:
         raise ValueError(f"linearize: method must be one of {LINEAR_METHODS}; got {method!r}")
@@ -188,9 +198,13 @@ def linearize(
     args = (mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked)
     # compiled once per structure with XLA's cheapest settings, in parts; traced into a caller's jit
     out = _linearize_traced(*args)
-    A, mass, damping, stiffness, rates, x0, quality, terms = out
+    A, mass, damping, stiffness, rates, x0, quality, terms, (agrees, on) = out
     if checked:  # a mass matrix that is not positive definite, constraints declared linear that are not, ...
         mech._judge_state_terms(terms, constraint_rtol=float("inf"))
+    if checked and not bool(on):
+        raise ValueError(HOLONOMIC_VIOLATED)
+    if checked and not bool(agrees):
+        raise ValueError(ACCELERATION_ENERGY_MISMATCH)
     if checked and speeds is not None and m and not float(quality) > 1e3 * float(jnp.finfo(q.dtype).eps):
         raise ValueError(
             f"linearize: speeds={speeds}: the dependent velocities cannot be solved from the constraints "
@@ -216,18 +230,23 @@ def linearize(
 def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, complete, accelerations, checked=False):
     """The linearisation from its compiled parts (the whole of it under a caller's `jit`, where the
     parts are traced into one program). `checked`: the values are concrete and checked on the host
-    after the call, so the in-graph affinity test is left out, and the last two outputs are the
+    after the call, so the in-graph affinity test is left out, and the last three outputs are the
     quality of the given `speeds`' dependent block at (q, qd) (1 otherwise), for `linearize` to
-    refuse a singular one, and `_state_terms` at (q, qd) for `Mechanism._judge_state_terms` (None
-    otherwise)."""
-    if checked:
-        quality, terms = _checks(mech, params, q, qd, t, speeds)
-    else:
-        quality, terms = jnp.ones((), q.dtype), None
+    refuse a singular one, `_state_terms` at (q, qd) for `Mechanism._judge_state_terms` (None
+    otherwise), and the verdicts of two checks `simulate` makes of its initial state: whether a
+    given acceleration energy S agrees with T at (q, qd) (`acceleration_energy_agrees`) and whether
+    the operating configuration (after `complete`) satisfies the holonomic constraints
+    (`holonomic_consistent`). Traced values cannot be refused on the host: a failed check makes
+    every output NaN, never a finite linearisation of other equations or of an impossible state."""
     if complete is not None:
         q_op, dq_dc = _configuration(params, q, t, coordinates, complete)
     else:
         q_op, dq_dc = q, _alone(q.shape[0], coordinates, q.dtype)
+    if checked:
+        quality, terms, verdicts = _checks(mech, params, q, q_op, qd, t, speeds)
+    else:
+        quality, terms = jnp.ones((), q.dtype), None
+        verdicts = _simulate_checks(mech, params, q, q_op, qd, t)
     # traced values cannot be checked on the host: the kinematics check in-graph that constraints
     # declared linear are, and come out NaN (and so everything after them) if they are not
     x0, K, dK = _kinematics(mech, params, q_op, dq_dc, qd, t, coordinates, speeds, not checked)
@@ -240,19 +259,56 @@ def _linearize_traced(mech, params, q, qd, t, coordinates, speeds, method, compl
         # E is affine in v̇: the first pass gives the operating accelerations, the second the
         # matrices there (and `rates`, one more correction, to show that they are right)
         A, mass, damping, stiffness, rates, _ = _dynamics(mech, params, K, dK, vd_next, t, method, coordinates)
-    return A, mass, damping, stiffness, rates, x0, quality, terms
+    out = (A, mass, damping, stiffness, rates, x0)
+    if not checked and (mech.acceleration_energy is not None or mech.holonomic is not None):
+        out = jax.tree_util.tree_map(lambda x: jnp.where(verdicts[0] & verdicts[1], x, jnp.nan), out)
+    return (*out, quality, terms, verdicts)
 
 
-def _checks_traced(mech, params, q, qd, t, speeds):
+ACCELERATION_ENERGY_MISMATCH = (
+    "linearize: the mechanism's acceleration energy S (`acceleration_energy`) disagrees with its kinetic "
+    "energy T at the operating state (q, qd, t): Appell's equations need ∂S/∂qdd = d/dt(∂T/∂qd) − ∂T/∂q, "
+    "that is ∂²S/∂qdd² = M (the mass matrix ∂²T/∂qd²) and ∂S/∂qdd at qdd = 0 equal to the velocity terms "
+    "of Lagrange's equations, to √eps of their scale; they do not (a mass counted twice, a centripetal or "
+    "Coriolis term left out, a sign). method='appell' would linearise the equations from S and "
+    "method='lagrange' those from T: two different motions (`simulate` refuses this mechanism too, with "
+    "the status acceleration_energy_mismatch). Correct `acceleration_energy`, or leave it out of the "
+    "Mechanism (jaxnh then builds S from T)."
+)
+
+
+HOLONOMIC_VIOLATED = (
+    "linearize: the operating coordinates q do not satisfy the mechanism's holonomic constraints "
+    "g(q, t) = 0 (to √eps of their scale; `mech.holonomic_residual(q, t, params)` tells how far off): "
+    "the linearisation would be about a configuration the mechanism cannot take (`simulate` refuses such "
+    "a q0 too, with the status holonomic_violated). Pass a q on the constraints — solve g(q) = 0 for the "
+    "dependent coordinates, e.g. `mech.restore(q, t, params)` — or pass complete=mech.restore."
+)
+
+
+def _simulate_checks(mech, params, q, q_op, qd, t):
+    """The verdicts of two checks `simulate` makes of its initial state, by the same functions:
+    (a given acceleration energy S agrees with T at (q, qd, t) — `acceleration_energy_agrees`;
+    the operating configuration q_op lies on g = 0 — `holonomic_consistent`), each True when the
+    mechanism has no S or no holonomic constraints. No derivative flows through them."""
+    q, q_op, qd, t, params = jax.lax.stop_gradient((q, q_op, qd, t, params))
+    yes = jnp.ones((), bool)
+    agrees = yes if mech.acceleration_energy is None else acceleration_energy_agrees(mech, q, qd, t, params)
+    on = yes if mech.holonomic is None else holonomic_consistent(mech, q_op, t, params)
+    return agrees, on
+
+
+def _checks_traced(mech, params, q, q_op, qd, t, speeds):
     """What `linearize` checks on the host at a concrete state: the quality of the given `speeds`'
-    dependent block at (q, qd) (1 when they are chosen automatically) and `_state_terms`."""
+    dependent block at (q, qd) (1 when they are chosen automatically), `_state_terms`, and the
+    verdicts of `_simulate_checks` (S against T at (q, qd); the completed q_op on g = 0)."""
     s = q.shape[0]
     m = mech.n_constraints(q, qd, t, params)
     terms = _state_terms(mech, q, qd, t, params)
     quality = jnp.ones((), q.dtype)
     if speeds is not None and m:
         quality = partition_quality(mech, q, qd, t, params, speeds, s - m, A=terms[2])[0]
-    return quality, terms
+    return quality, terms, _simulate_checks(mech, params, q, q_op, qd, t)
 
 
 def _configuration_traced(params, q, t, coordinates, complete):
