@@ -5,11 +5,16 @@ plain JAX functions; jaxnh derives Lagrange's equations with multipliers or
 Appell's equations by automatic differentiation, integrates them with
 diffrax, and everything works under `jit`, `vmap` and `grad`.
 
-Precision: importing jaxnh turns on JAX's 64-bit mode
-(`jax_enable_x64`), because accuracy is the product. Set the environment
-variable `JAXNH_X64=0` before the import to leave JAX's setting alone; to run
-in float32 with 64-bit mode on, pass float32 arrays (q0, qd0, ts and the
-params leaves) — the library keeps the dtype it is given.
+Precision: importing jaxnh turns on JAX's 64-bit mode (`jax_enable_x64`),
+because accuracy is the product — unless the user has chosen: the import
+changes nothing when JAX's own environment variable `JAX_ENABLE_X64` is set
+(to any value: "0" keeps float32), when `JAXNH_X64=0` is set, or when the flag
+is already on. JAX keeps no record of a value set equal to its default, so
+`jax.config.update("jax_enable_x64", False)` before the import cannot be told
+from no choice: set the flag after `import jaxnh` (jaxnh never changes it
+later) or use the environment variable. To run in float32 with 64-bit mode on,
+pass float32 arrays (q0, qd0, ts and the params leaves) — the library keeps the
+dtype it is given.
 
 Importing jaxnh changes no other JAX setting. `jaxnh.enable_compilation_cache()`
 turns on JAX's persistent compilation cache in the user's cache folder, so that
@@ -23,7 +28,19 @@ from typing import Any, TYPE_CHECKING
 import jax
 
 
-if os.environ.get("JAXNH_X64", "1") != "0":
+def _user_chose_precision() -> bool:
+    """Whether the user has chosen JAX's precision before importing jaxnh, by a public signal:
+    JAX's environment variable `JAX_ENABLE_X64` set (JAX reads it when it defines the flag; any
+    value is a choice, "0" for float32), jaxnh's own `JAXNH_X64=0` ("leave JAX alone"), or the
+    flag already on (`jax.config.update("jax_enable_x64", True)`, a command-line flag, or
+    `with jax.enable_x64(True)` around the import). An update to False before the import leaves
+    no trace JAX exposes (it equals JAX's default) and is not seen."""
+    if "JAX_ENABLE_X64" in os.environ or os.environ.get("JAXNH_X64", "1") == "0":
+        return True
+    return bool(jax.config.jax_enable_x64)  # pyright: ignore[reportAttributeAccessIssue, reportUnknownArgumentType, reportUnknownMemberType] (JAX sets it at run time)
+
+
+if not _user_chose_precision():  # float64 for a user who has not chosen: jaxnh's accuracy needs it
     jax.config.update("jax_enable_x64", True)  # pyright: ignore[reportUnknownMemberType] (JAX leaves it unannotated)
 
 from jaxnh import equations, linalg, profiles, rigid, solvers  # noqa: E402
