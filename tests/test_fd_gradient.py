@@ -10,9 +10,11 @@ eps^(2/3) in float64 and 6 in float32 over every case here.
 
 The reported failures of the former step h·max(1, |x|) with h = 1e-6 (absolute below |x| = 1) are
 of the first two kinds below: f = 1/x at x = 1e-5 gave −1.0101e10 for −1e10 (a step of a tenth of x),
-f = log x at x = 1e-8 gave NaN for 1e8 (the step crossed 0); and a large f (1e10 + a x) differenced
-over an absolute step of 1e-6 leaves only a few bits of the difference (its rounding, 1e10 eps / 2e-6,
-is of the order of the derivative): the third report, −1.490 for −1.515, is of that kind.
+f = log x at x = 1e-8 gave NaN for 1e8 (the step crossed 0). The third, −1.490 for −1.515, is a
+large f differenced over the absolute step 1e-6: the quotient can only take multiples of
+ulp(f) / 2e-6, and −1.490 is exactly −200 × 2⁻²⁶ / 2e-6 (ulp(f) = 2⁻²⁶ for |f| in [6.7e7, 1.3e8]);
+the function itself was not reported, so the case here is of that kind (1e10 + a x, whose rounding
+1e10 eps / 2e-6 ≈ 1 is of the order of the derivative), not a reproduction.
 """
 
 import jax.numpy as jnp
