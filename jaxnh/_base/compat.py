@@ -1,33 +1,39 @@
-"""The one place where jaxnh reads or sets anything that is not public API of JAX or equinox.
+"""The one place where jaxnh reads anything that is not public API of JAX or equinox.
 
-Each item here has a plain fallback: if a future release moves what it touches, jaxnh keeps
-working, only a little slower or with less detailed messages (`tests/test_layers.py` checks
-that no other module reaches into private names, and `tests/test_compat.py` runs each fallback).
+`tests/test_layers.py` checks that no other module reaches into private names, and
+`tests/test_compat.py` checks what this module provides against equinox's public behaviour, so
+that a release of equinox that moves these names fails there first.
 
 * `status_code`, `status_messages`: equinox's `Enumeration` keeps an item's integer code and
   the table of messages in private attributes (`_value`, `_index_to_message`). jaxnh's statuses
   (`jaxnh.STATUS`) extend diffrax's `RESULTS` and must stay an equinox `Enumeration`, so that a
   diffrax result can be promoted to one inside a compiled program. Fallback: none is needed
   while equinox keeps these names; should they go, the test of this module fails first.
-* `no_host_callbacks`: equinox's run-time checks (`eqx.error_if`, which diffrax uses on its
-  inputs even with `throw=False`) become host callbacks; a program with host callbacks cannot be
-  stored in JAX's persistent compilation cache. jaxnh checks those inputs itself (a failure is a
-  `STATUS`), so while tracing its own solves it switches equinox's checks to the "nan" mode.
-  equinox reads that mode from `equinox._errors.EQX_ON_ERROR` when a check is traced (the public
-  switch is the environment variable `EQX_ON_ERROR`, read once at import). Fallback: when the
-  attribute is missing, nothing is switched; programs are then compiled as usual but not cached.
+
+Nothing here writes to equinox or JAX. An earlier `no_host_callbacks` set equinox's private,
+process-wide `equinox._errors.EQX_ON_ERROR` to "nan" while a solve was traced, so that diffrax's
+two checks of `SaveAt(ts=...)` (increasing, within [t0, t1]; `throw=False` does not remove them;
+jaxnh checks the report times itself) compiled without host callbacks, and JAX's persistent
+compilation cache (opt-in: `jaxnh.enable_compilation_cache()`) could store the program. It also
+switched any `eqx.error_if` of the user traced in that window, in the solve or in another thread,
+and was not thread-safe. No public API of JAX, equinox or diffrax removes those checks, so it was
+dropped. What that costs, measured on the README's variator (first `simulate` in a fresh
+process, 3 interleaved runs each, 2 cores shared with other work): from a warm cache, with the
+switch the solve's program was loaded (0.4–0.8 s) and the first call took 5.8–6.5 s; without it
+the program is compiled again (7.1–8.5 s) and the first call takes 11.8–13.7 s. With the cache
+off (the default) both compile it (3.6–7.1 s, no consistent difference). A user who wants the
+program cached can set equinox's public environment variable `EQX_ON_ERROR=nan` before importing
+equinox (it then applies to every check, the user's own included).
 """
 
 from __future__ import annotations
 
-import contextlib
-import importlib
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
 
-__all__ = ["status_code", "status_messages", "no_host_callbacks"]
+__all__ = ["status_code", "status_messages", "status_code_int"]
 
 
 def status_code(item: Any) -> Any:
@@ -44,25 +50,3 @@ def status_messages(enumeration: Any) -> list[str]:
 def status_code_int(item: Any) -> int:
     """`status_code` of a concrete, unbatched item as a Python int."""
     return int(np.asarray(status_code(item)))
-
-
-def _equinox_errors() -> Any:
-    try:
-        return importlib.import_module("equinox._errors")
-    except ImportError:  # a future equinox: the fallback
-        return None
-
-
-@contextlib.contextmanager
-def no_host_callbacks() -> Iterator[None]:
-    """While tracing inside this block, equinox's `error_if` gives NaN instead of a host callback."""
-    errors = _equinox_errors()
-    old = getattr(errors, "EQX_ON_ERROR", None)
-    if errors is None or old != "raise":
-        yield
-        return
-    setattr(errors, "EQX_ON_ERROR", "nan")
-    try:
-        yield
-    finally:
-        setattr(errors, "EQX_ON_ERROR", old)

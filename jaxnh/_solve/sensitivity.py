@@ -39,7 +39,6 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
 
-from jaxnh._base.compat import no_host_callbacks
 from jaxnh._base.modes import forward_only, reverse_once
 from jaxnh._base.types import PyTree
 from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
@@ -173,23 +172,22 @@ def diffrax_solve(
             "order and mode), or adjoint=jaxnh.ForwardSensitivity() and take jax.jacfwd(jax.grad(f)) or "
             "jax.hessian(f)",
         )
-    with no_host_callbacks():
-        return diffrax.diffeqsolve(
-            diffrax.ODETerm(vector_field),
-            solver,
-            t0=t0,
-            t1=t1,
-            dt0=dt0,
-            y0=y0,
-            args=args,
-            saveat=saveat,
-            stepsize_controller=controller,
-            max_steps=max_steps,
-            adjoint=adjoint,
-            event=event,
-            throw=False,
-            **kwargs,
-        )
+    return diffrax.diffeqsolve(
+        diffrax.ODETerm(vector_field),
+        solver,
+        t0=t0,
+        t1=t1,
+        dt0=dt0,
+        y0=y0,
+        args=args,
+        saveat=saveat,
+        stepsize_controller=controller,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        event=event,
+        throw=False,
+        **kwargs,
+    )
 
 
 def forward_mode_outputs(tree, adjoint, given: str = "diffrax.ForwardMode()"):
