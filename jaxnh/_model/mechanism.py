@@ -24,6 +24,7 @@ import jax
 import jax.core
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import checkify
 
 from jaxnh._base.compile import one_shot_jit
 from jaxnh._base.linalg import value_and_jacfwd
@@ -299,43 +300,129 @@ class Mechanism(eqx.Module):
         qd: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
         t: jax.typing.ArrayLike | Sequence[jax.typing.ArrayLike],
         params: object,
+        *,
+        arguments: tuple[str, str] = ("q0", "qd0"),
     ) -> int:
         """Check output shapes of the user functions at trace time; return m.
 
-        Raises ValueError naming the function, the shape that came and the
-        shape that was expected. The answer depends only on the mechanism and
-        the shapes and dtypes of the arguments, so it is remembered for them
-        (tracing every user function costs ≈ 3 ms of Python per call).
+        Raises ValueError naming the argument or the function at fault, what
+        came (its type, or its shape) and what was expected. `arguments`: the
+        names the caller's user gave q and qd (`simulate`'s q0 and qd0 by
+        default), used in those messages. The answer depends only on the
+        mechanism and the shapes and dtypes of the arguments, so it is
+        remembered for them (tracing every user function costs ≈ 3 ms of
+        Python per call).
         """
         key = _signature_key(self, q, qd, t, params)
         if key is not None and key in _SHAPES_CHECKED:
             return _SHAPES_CHECKED[key]
-        m = self._check_shapes(q, qd, t, params)
+        m = self._check_shapes(q, qd, t, params, arguments)
         if key is not None:
             if len(_SHAPES_CHECKED) >= _SHAPES_CHECKED_MAX:
                 _SHAPES_CHECKED.pop(next(iter(_SHAPES_CHECKED)))
             _SHAPES_CHECKED[key] = m
         return m
 
-    def _check_shapes(self, q, qd, t, params) -> int:
+    def _check_shapes(self, q, qd, t, params, arguments=("q0", "qd0")) -> int:
         q, qd = jnp.asarray(q), jnp.asarray(qd)
-        if q.ndim != 1:
-            raise ValueError(f"q must be a vector of coordinates, shape (s,); got shape {q.shape}")
+        self._check_state_shapes(q, qd, t, params, arguments)
+        return self._check_outputs(q, qd, t, params)
+
+    def _check_state_shapes(self, q, qd, t, params, arguments) -> None:
+        """The lengths of q and qd against each other and against the mechanism; a ValueError
+        naming the one that disagrees (`arguments`: their names for the user)."""
+        qn, qdn = arguments
+        batch = " (for a batch of states use jax.vmap or jaxnh.sweep over single states)"
+        for x, name, what in ((q, qn, "coordinates"), (qd, qdn, "velocities")):
+            if x.ndim != 1:
+                raise ValueError(
+                    f"{name} must be a vector of the {what}, shape (s,) with s the number of coordinates; "
+                    f"got shape {x.shape}" + (batch if x.ndim > 1 else "")
+                )
+        nq, nqd = q.shape[0], qd.shape[0]
+        if self.names is not None:
+            s = len(self.names)
+            source = f"names={tuple(self.names)!r}"
+            if nq != s and nqd != s:
+                raise ValueError(
+                    f"{qn} and {qdn} have shapes ({nq},) and ({nqd},), but the Mechanism has s = {s} coordinates "
+                    f"({source}): give {qn} and {qdn} shape ({s},) each, or correct the Mechanism's `names` "
+                    "(one per coordinate)"
+                )
+            if nq != s:
+                raise ValueError(
+                    f"the coordinates {qn} have shape ({nq},), but the Mechanism has s = {s} coordinates "
+                    f"({source}); expected {qn} of shape ({s},) ({qdn} has shape ({nqd},), which agrees)"
+                )
+            if nqd != s:
+                raise ValueError(
+                    f"the velocities {qdn} have shape ({nqd},), but qd must have the shape of q, ({s},): one "
+                    f"velocity per coordinate ({source}; {qn} has shape ({nq},), which agrees)"
+                )
+            return
+        if nq == nqd:
+            return
+        # no names: which length do the mechanism's functions accept? (only on this error path)
+        works = {n: self._works_with(n, q.dtype, qd.dtype, t, params) for n in (nq, nqd)}
+        if works[nq] and not works[nqd]:
+            raise ValueError(
+                f"the velocities {qdn} have shape ({nqd},), but qd must have the shape of q, ({nq},): one velocity "
+                f"per coordinate (the mechanism's functions work with {nq} coordinates, as {qn} has; with {nqd} they "
+                f"fail, index past the end or return the wrong shape); expected {qdn} of shape ({nq},)"
+            )
+        if works[nqd] and not works[nq]:
+            raise ValueError(
+                f"the coordinates {qn} have shape ({nq},), but the mechanism has s = {nqd} coordinates (its "
+                f"functions work with {nqd}, as {qdn} has; with {nq} they fail, index past the end or return the "
+                f"wrong shape); expected {qn} of shape ({nqd},)"
+            )
+        raise ValueError(
+            f"{qn} has shape ({nq},) and {qdn} shape ({nqd},): they must have the same length s, one entry per "
+            f"coordinate (qd must have the shape of q), and the mechanism's functions do not tell which is "
+            f"right. Pass {qn} and {qdn} of the mechanism's length; Mechanism(names=...) lets this message "
+            "say which one disagrees"
+        )
+
+    def _works_with(self, n: int, q_dtype, qd_dtype, t, params) -> bool:
+        """Whether the mechanism's functions accept n coordinates: they return shapes that fit n,
+        and index no coordinate or velocity beyond n (JAX clamps such an index silently, so it is
+        looked for with `checkify`'s index checks, at q = qd = 0). Used only to word an error."""
+        q, qd = jnp.zeros((n,), q_dtype), jnp.zeros((n,), qd_dtype)
+        calls = [(self.kinetic, (q, qd, t, params))]
+        calls += [(f, (q, qd, t, params)) for f in (self.constraints, self.forces) if f is not None]
+        calls += [(f, (q, t, params)) for f in (self.potential, self.holonomic) if f is not None]
+        try:
+            self._check_outputs(q, qd, t, params)
+            for f, args in calls:
+                err, _ = checkify.checkify(f, errors=checkify.index_checks)(*args)
+                if err.get() is not None:
+                    return False
+        except Exception:  # any failure of a user function at this length (or traced params): not known to work
+            return False
+        return True
+
+    def _check_outputs(self, q, qd, t, params) -> int:
+        """The shapes the user functions return at q, qd of shape (s,); return m."""
         s = q.shape[0]
-        if qd.shape != (s,):
-            raise ValueError(f"qd must have the shape of q, ({s},); got {qd.shape}")
-        if self.names is not None and len(self.names) != s:
-            raise ValueError(f"Mechanism `names` has {len(self.names)} entries but q has s={s} coordinates")
 
         def out(fn, name, *args):
             try:
                 return eqx.filter_eval_shape(fn, *args)
             except Exception as e:  # re-raise with the function named
-                raise type(e)(f"Mechanism `{name}` failed when called with q, qd of shape ({s},): {e}") from e
+                msg = f"Mechanism `{name}` failed when called with q, qd of shape ({s},): {e}"
+                try:
+                    err = type(e)(msg)
+                except Exception:  # an exception type that takes other arguments
+                    err = ValueError(msg)
+                raise err from e
 
         T = out(self.kinetic, "kinetic", q, qd, t, params)
         if getattr(T, "shape", None) != ():
-            raise ValueError(f"Mechanism `kinetic` must return a scalar; got shape {getattr(T, 'shape', type(T))}")
+            raise ValueError(
+                f"Mechanism `kinetic` must return a scalar; got {_returned(T)}. T(q, qd, t, params) must "
+                "return a JAX array of shape (): add up the terms, e.g. 0.5 * jnp.sum(J * qd ** 2) or "
+                "0.5 * (J1 * qd[0] ** 2 + J2 * qd[1] ** 2)"
+            )
         if not jnp.issubdtype(T.dtype, jnp.inexact):
             raise TypeError(
                 f"Mechanism `kinetic` returned dtype {T.dtype}: T must be a floating-point scalar (it is "
@@ -345,17 +432,21 @@ class Mechanism(eqx.Module):
         m = 0
         if self.constraints is not None:
             c = out(self.constraints, "constraints", q, qd, t, params)
-            if len(getattr(c, "shape", ())) != 1:
+            if not _is_vector(c):
                 raise ValueError(
-                    f"Mechanism `constraints` must return a vector of shape (m,); got shape {getattr(c, 'shape', None)}"
+                    f"Mechanism `constraints` must return a vector of shape (m,); got {_returned(c)}. "
+                    "c(q, qd, t, params) must return a JAX array with one value per constraint: build it "
+                    "with jnp.stack([...]), e.g. jnp.stack([U21(t) * qd[0] - qd[1]]) for one constraint"
                 )
             m = c.shape[0]
             check_contact_shapes(self.contacts, m, q, qd, t, params)
         if self.holonomic is not None:
             g = out(self.holonomic, "holonomic", q, t, params)
-            if len(getattr(g, "shape", ())) != 1:
+            if not _is_vector(g):
                 raise ValueError(
-                    f"Mechanism `holonomic` must return a vector of shape (h,); got shape {getattr(g, 'shape', None)}"
+                    f"Mechanism `holonomic` must return a vector of shape (h,); got {_returned(g)}. "
+                    "g(q, t, params) must return a JAX array with one value per holonomic constraint: build "
+                    "it with jnp.stack([...]), e.g. jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0])"
                 )
             m += g.shape[0]
         if m > s:
@@ -366,16 +457,26 @@ class Mechanism(eqx.Module):
         if self.forces is not None:
             Q = out(self.forces, "forces", q, qd, t, params)
             if getattr(Q, "shape", None) != (s,):
-                raise ValueError(f"Mechanism `forces` must return shape ({s},); got {getattr(Q, 'shape', None)}")
+                raise ValueError(
+                    f"Mechanism `forces` must return shape ({s},); got "
+                    + (str(tuple(Q.shape)) if _is_array(Q) else _returned(Q))
+                    + f". Q(q, qd, t, params) must return a JAX array with one generalized force per "
+                    f"coordinate (s = {s}): build it with jnp.stack([...]), with 0.0 for a coordinate "
+                    "no force acts on"
+                )
         if self.potential is not None:
             V = out(self.potential, "potential", q, t, params)
             if getattr(V, "shape", None) != ():
-                raise ValueError(f"Mechanism `potential` must return a scalar; got shape {getattr(V, 'shape', None)}")
+                raise ValueError(
+                    f"Mechanism `potential` must return a scalar; got {_returned(V)}. V(q, t, params) must "
+                    "return a JAX array of shape (): add up the terms, e.g. m * g * q[1]"
+                )
         if self.acceleration_energy is not None:
             S = out(self.acceleration_energy, "acceleration_energy", q, qd, qd, t, params)
             if getattr(S, "shape", None) != ():
                 raise ValueError(
-                    f"Mechanism `acceleration_energy` must return a scalar; got shape {getattr(S, 'shape', None)}"
+                    f"Mechanism `acceleration_energy` must return a scalar; got {_returned(S)}. "
+                    "S(q, qd, qdd, t, params) must return a JAX array of shape (): add up the terms"
                 )
         if self.independent is not None:
             check_independent(self.independent, s, m)
@@ -602,3 +703,25 @@ def _is_concrete(x) -> bool:
 
 def _params_concrete(params) -> bool:
     return all(_is_concrete(l) for l in jax.tree_util.tree_leaves(params))
+
+
+def _is_array(x) -> bool:
+    """Whether an output of `eqx.filter_eval_shape` is an array (it gives their shapes and dtypes)."""
+    return isinstance(x, (jax.ShapeDtypeStruct, jax.Array, np.ndarray))
+
+
+def _is_vector(x) -> bool:
+    return _is_array(x) and len(x.shape) == 1
+
+
+def _returned(x) -> str:
+    """What a user function returned, in words: an array's shape, or the Python type it is."""
+    if _is_array(x):
+        return f"shape {tuple(x.shape)}" + (" (a scalar)" if x.shape == () else "")
+    if x is None:
+        return "None (does the function end without `return`?)"
+    if isinstance(x, (list, tuple)):
+        return f"a Python {type(x).__name__} of {len(x)} item{'s' if len(x) != 1 else ''}, not a JAX array"
+    if isinstance(x, (int, float, complex, bool)):
+        return f"a Python {type(x).__name__} ({x!r}), not a JAX array (it does not depend on the arguments)"
+    return f"a {type(x).__module__}.{type(x).__qualname__}, not a JAX array"
