@@ -2,7 +2,12 @@
 fault, what came and what was expected. And how a status reads: its repr, `help(jaxnh.STATUS)`, and
 testing a batch's status under `jax.vmap`."""
 
+import pydoc
+import re
+
+import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxnh as nh
@@ -135,3 +140,40 @@ def test_a_function_returning_the_wrong_thing_is_named_with_what_it_returned(fie
 )
 def test_kinetic_energy_not_a_scalar(T, words):
     raises(words, nh.Mechanism(T), jnp.zeros(3), jnp.ones(3))
+
+
+# --- cases 3 and 4: how a status reads, alone and in a batch ------------------------------------
+
+
+def test_status_repr_is_not_empty():
+    assert repr(nh.STATUS.successful) == "jaxnh.STATUS<successful>"
+    assert repr(nh.STATUS.max_steps_reached).startswith("jaxnh.STATUS<The maximum number of solver steps")
+    assert nh.STATUS[nh.STATUS.successful] == "successful"  # the public lookup agrees with the repr
+
+
+def test_help_lists_every_member_with_its_message():
+    doc = pydoc.render_doc(nh.STATUS, renderer=pydoc.plaintext)  # pyright: ignore[reportAttributeAccessIssue] (untyped in typeshed)
+    for name in ("successful", "max_steps_reached", "non_finite_input", "inconsistent_velocities", "stiff"):
+        assert f"`{name}`" in doc, name
+    assert "`non_finite_input`: The initial state (q0, qd0)" in doc
+    assert "sol.status == STATUS.successful" in doc  # how to test one, or a batch
+
+
+def test_batch_status_is_tested_by_comparison():
+    """Under vmap the status is one item holding the batch: `==` gives a boolean array of its shape,
+    while np.asarray of the item is a 0-dimensional object array (the reported trap)."""
+    mech, p = V.mechanism(), V.default_params()
+    qd0 = jnp.array([2.0, float(p.U21(0.0)) * 2.0])
+
+    def one(J1):
+        return nh.simulate(mech, V.VariatorParams(J1, p.J2, p.U21, p.M1, p.M2), jnp.zeros(2), qd0, TS, throw=False)
+
+    sol = jax.vmap(one)(jnp.array([0.02, -0.02, 0.03, 0.04]))
+    assert np.asarray(sol.status).shape == ()  # not the batch: compare instead
+    ok = sol.status == nh.STATUS.successful
+    assert ok.shape == (4,) and ok.tolist() == [True, False, True, True]
+    assert np.asarray(sol.success).tolist() == [True, False, True, True]
+    bad = sol.status == nh.STATUS.mass_matrix_not_positive_definite
+    assert bad.tolist() == [False, True, False, False]
+    assert re.match(r"1 of 4 failed: 3 × success; 1 × solve failed: The mass matrix", sol.message)
+    assert sol.messages[1].startswith("solve failed: The mass matrix") and sol.messages[0] == "success"

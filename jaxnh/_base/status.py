@@ -10,6 +10,9 @@ raised from inside the program instead (`equinox.error_if`).
 
 from __future__ import annotations
 
+import inspect
+import warnings
+
 import diffrax
 import equinox as eqx
 import jax
@@ -22,9 +25,29 @@ from jaxnh._base.compat import status_code, status_code_int, status_messages
 __all__ = ["STATUS", "SimulationError", "InvalidInitialState", "describe", "error_for", "is_traced"]
 
 
-class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
-    """Why a simulation stopped: diffrax's results plus jaxnh's own."""
+# `successful` gets a message of its own below (diffrax's is empty, so an item's repr, which equinox
+# writes as `STATUS<message>`, was `STATUS<>`); equinox warns when a subclass gives an inherited item a
+# new message, and that warning is silenced for this class definition (and its bare subclass below) only
+_quiet = warnings.catch_warnings()
+_quiet.__enter__()
+warnings.filterwarnings("ignore", message="Enumeration has duplicate incompatible values for successful")
 
+
+class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
+    """Why a simulation stopped: diffrax's results plus jaxnh's own.
+
+    `sol.status` is one item, e.g. `STATUS.successful`; compare it with `==`, which gives a boolean
+    array (`sol.status == STATUS.successful`, or `sol.success`). Under `jax.vmap` or `jaxnh.sweep` the
+    item holds the whole batch: `sol.status == STATUS.successful` is then a boolean array of the
+    batch's shape, `sol.message` counts each outcome and `sol.messages` gives one message per member
+    (`np.asarray` of the item itself is a 0-dimensional object array, not the codes). `STATUS[item]`
+    is an item's message (an array of messages for a batch). An item's repr shows its message,
+    `jaxnh.STATUS<successful>` for a successful solve: equinox prints every item of an enumeration
+    as `<message>` and gives a subclass no way to print its name instead.
+    """
+
+    __module__ = "jaxnh"  # the public name: an item's repr is `jaxnh.STATUS<message>`
+    successful = "successful"
     non_finite_input = (
         "The initial state (q0, qd0), the report times or the parameters contain NaN or inf; "
         "nothing was integrated. Check the argument that holds them."
@@ -161,6 +184,14 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "a constraint nonlinear in the velocities starts at a fold, a double root of c_k = 0 in "
         "qd, where no unique motion starts. Start from a state where ∂c/∂qd has full rank."
     )
+
+
+# `help(jaxnh.STATUS)` lists every item (diffrax's and jaxnh's) with its message: equinox writes that
+# list as the docstring of an enumeration that has none, so it is taken from a bare subclass (which has
+# the same items; its `successful` too differs from diffrax's) and put after STATUS's own text
+STATUS.__doc__ = f"{inspect.cleandoc(STATUS.__doc__ or '')}\n\n{type(STATUS)('STATUS', (STATUS,), {}).__doc__}"  # pyright: ignore[reportCallIssue] (equinox types Enumeration as enum.Enum)
+_quiet.__exit__(None, None, None)
+del _quiet
 
 
 MAX_STEPS_ADVICE = (
