@@ -458,3 +458,75 @@ def test_design_without_matplotlib_writes_csv_and_json(tmp_path):
     assert "jaxnh design: compiling the experiment's simulation and its sensitivities (a first run" in proc.stderr
     assert "jaxnh design: compiling the design criterion and its gradient" in proc.stderr
     assert "compiling" not in proc.stdout
+
+
+# --- output folders are checked before any work, for every command --------------------------------
+
+
+@pytest.fixture
+def no_demo(monkeypatch):
+    """Fail loudly if `jaxnh demo` starts its work: the output checks must come first."""
+    import jaxnh._cli.main as cli_main
+
+    def boom(*a, **k):
+        raise AssertionError("the demo started before --out was checked")
+
+    monkeypatch.setattr(cli_main, "run", boom)
+
+
+def _assert_refused(code, err, command, pattern):
+    assert code == 2, err
+    assert err.startswith(f"jaxnh {command}: "), err
+    assert "Traceback" not in err, err
+    assert re.search(pattern, err), err
+
+
+@pytest.mark.parametrize("sub", [False, True])
+def test_demo_unwritable_out_exits_2_before_any_work(tmp_path, capsys, no_demo, sub):
+    ro = _unwritable_folder(tmp_path)
+    out = os.path.join(ro, "sub") if sub else str(ro)
+    code, _, err = run(["demo", "--out", out, "--no-fit"], capsys)
+    _assert_refused(code, err, "demo", r"--out .*not writable")
+
+
+@pytest.mark.parametrize("command", ["demo", "fit"])
+def test_a_folder_refusing_files_despite_its_permissions_exits_2(
+    tmp_path, capsys, no_demo, no_fit, monkeypatch, command
+):
+    """Permission bits pass (root, or a read-only file system): creating a file is what tells."""
+    import errno
+    import tempfile
+
+    def refuse(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    code, _, err = run([command, "--out", str(tmp_path / "o"), *(["--no-fit"] if command == "demo" else [])], capsys)
+    _assert_refused(code, err, command, r"--out .*cannot create a file in .*Read-only file system")
+    assert listing(tmp_path) == []
+
+
+def test_fit_unwritable_out_exits_2_before_fitting(tmp_path, capsys, no_fit):
+    ro = _unwritable_folder(tmp_path)
+    code, _, err = run(["fit", "--out", os.path.join(ro, "figs"), "--quiet"], capsys)
+    assert_bad_input(code, err, r"--out .*not writable")
+
+
+@pytest.mark.parametrize("command,name", [("demo", "variator_methods.png"), ("fit", "fit_ratio.png")])
+def test_an_output_file_taken_by_a_folder_exits_2(tmp_path, capsys, no_demo, no_fit, command, name):
+    (tmp_path / name).mkdir()
+    code, _, err = run([command, "--out", str(tmp_path), *(["--no-fit"] if command == "demo" else [])], capsys)
+    _assert_refused(code, err, command, rf"--out: .*{re.escape(name)} is a folder")
+
+
+def test_an_infeasible_design_names_the_limit_and_by_how_much():
+    from jaxnh._cli.design import broken_limits
+
+    check = {"status": 0, "criterion": 1.0, "stick": 1.25, "energy": 0.5, "std": 1.1}
+    text = broken_limits(check, "|F| ≤ μs N = 0.3 × 40 N (roller r = 0.05 m)")
+    assert (
+        "the friction cone (|F| ≤ μs N = 0.3 × 40 N (roller r = 0.05 m)): reaches 1.25 × the limit (25 % over)" in text
+    )
+    assert "J2 and the U21 knots no less precise" in text and "1.1 × the limit (10 % over)" in text
+    assert "energy" not in text  # within its limit
+    assert "cannot be simulated" in broken_limits({"status": 3, "stick": 0.5}, "")

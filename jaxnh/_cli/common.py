@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 
 
 __all__ = [
@@ -20,6 +21,8 @@ __all__ = [
     "PLOT_HINT",
     "use_agg",
     "plotting_available",
+    "probe_writable_dir",
+    "occupied_outputs",
 ]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
@@ -50,3 +53,28 @@ def plotting_available(command: str, skipped: str) -> bool:
         print(f"jaxnh {command}: {why}: {skipped} ({PLOT_HINT}); everything else is written as usual", file=sys.stderr)
         return False
     return True
+
+
+def probe_writable_dir(path, what: str) -> str | None:
+    """Why files cannot be created in folder `path` (None when they can), found by creating and
+    removing an empty file there (in its parent when `path` does not exist yet: it is created
+    later), before any work. Permission bits do not tell (root passes them; a read-only or
+    special file system refuses anyway), so this is tried after the checks of the path itself."""
+    full = os.path.abspath(os.fspath(path))
+    where = full if os.path.isdir(full) else os.path.dirname(full)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".jaxnh-probe-", dir=where)
+    except OSError as e:
+        return f"{what} {path}: cannot create a file in {where}: {e.strerror or e}"
+    os.close(fd)
+    os.unlink(probe)
+    return None
+
+
+def occupied_outputs(folder, names, what: str) -> str | None:
+    """Why an output file cannot be written in `folder`: one of its `names` is a folder there."""
+    for name in names:
+        f = os.path.join(os.fspath(folder), name)
+        if os.path.isdir(f):
+            return f"{what}: {f} is a folder; it must be free for an output file"
+    return None

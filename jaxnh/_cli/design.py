@@ -67,6 +67,7 @@ from jaxnh._cli.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     plotting_available,
+    probe_writable_dir,
     use_agg,
 )
 from jaxnh._model.profiles import Bounded, Fourier, Sampled
@@ -223,6 +224,9 @@ def _check_out(path: str) -> dict:
         raise ValueError(f"--out: cannot create the folder {path!r}: {e.strerror}") from None
     if not os.access(out, os.W_OK | os.X_OK):
         raise ValueError(f"--out: the folder {path!r} is not writable")
+    why = probe_writable_dir(out, "--out")
+    if why:
+        raise ValueError(why)
     files = {k: os.path.join(out, v) for k, v in OUTPUTS.items()}
     for f in files.values():
         if os.path.isdir(f):
@@ -489,10 +493,36 @@ def _run(args, files) -> int:
             else f"  contact force: max |λ| {out['check']['max_abs_lambda']:.4g} N·m (limit {lam_max:.4g}); "
         )
         + f"max |M1| {out['check']['max_abs_M1']:.4g} N·m (limit {m1_max:.4g}); "
-        f"{'FEASIBLE' if feasible else 'NOT FEASIBLE: a limit is exceeded'}",
+        f"{'FEASIBLE' if feasible else 'NOT FEASIBLE'}",
     )
+    if not feasible:
+        print(f"jaxnh design: no design within the limits: {broken_limits(check, limit_text)}", file=sys.stderr)
     _say(args, f"  wrote {', '.join(files.values())} ({out['elapsed_s']:.0f} s)")
     return EXIT_OK if feasible else EXIT_FAILED
+
+
+LIMIT_WORDS = {
+    "multiplier": "the contact force |λ| ≤ --lambda-max",
+    "stick": "the friction cone",
+    "energy": "the energy the drives deliver ≤ --energy-max",
+    "power": "the peak drive power ≤ --power-max",
+    "std": "J2 and the U21 knots no less precise than with the record's input (--no-keep drops this limit)",
+}
+"""The limits of `evaluate_design` (`LIMIT_KEYS`) in words."""
+
+
+def broken_limits(check: dict, limit_text: str) -> str:
+    """The limits a checked design (`evaluate_design`'s dict) breaks, each with how far: its largest
+    value as a multiple of the limit, and the percentage over. `limit_text`: the contact limit in words."""
+    if check.get("status", 0) != 0:
+        return f"the designed experiment cannot be simulated (status code {check['status']})"
+    broken = [
+        f"{LIMIT_WORDS[k]}{f' ({limit_text})' if k in ('stick', 'multiplier') else ''}: reaches "
+        f"{check[k]:.4g} × the limit ({100 * (check[k] - 1):.3g} % over)"
+        for k in LIMIT_KEYS
+        if k in check and not check[k] <= 1.0
+    ]
+    return "; ".join(broken) or "no limit reported as exceeded"
 
 
 def _table(labels, base, des) -> str:

@@ -53,7 +53,15 @@ import numpy as np
 
 from jaxnh._base.atomic import atomic_save_figure, atomic_write, check_writable_dir, check_writable_file
 from jaxnh._base.dataframe import json_safe
-from jaxnh._cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, plotting_available
+from jaxnh._cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    occupied_outputs,
+    plotting_available,
+    probe_writable_dir,
+)
 from jaxnh._model.profiles import CubicSpline
 from jaxnh.identify._fit import fit, RATE_WINDOW
 from jaxnh.identify.data import load_default, MAX_SAMPLES, read_csv
@@ -210,6 +218,10 @@ def add_fit_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+FIT_FIGURES = ("fit_data.png", "fit_ratio.png")
+"""The figures `jaxnh fit --out` draws."""
+
+
 # --- checks before fitting ----------------------------------------------------------------------
 
 
@@ -226,8 +238,15 @@ def check_outputs(json_path, out_dir, data_path=None) -> None:
             and os.path.samefile(json_path, data_path)
         ):
             raise BadInput(f"--json {json_path}: is the input file; choose another name")
+        why = probe_writable_dir(os.path.dirname(os.path.abspath(json_path)), "--json")
+        if why:
+            raise BadInput(why)
     if out_dir is not None:
-        why = check_writable_dir(out_dir, "--out")
+        why = (
+            check_writable_dir(out_dir, "--out")
+            or probe_writable_dir(out_dir, "--out")
+            or occupied_outputs(out_dir, FIT_FIGURES, "--out")
+        )
         if why:
             raise BadInput(why)
 

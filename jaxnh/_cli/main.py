@@ -38,7 +38,16 @@ from typing import Sequence
 
 from jaxnh._base.atomic import check_writable_dir
 from jaxnh._base.cache import enable_compilation_cache
-from jaxnh._cli.common import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, plotting_available, use_agg
+from jaxnh._cli.common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    occupied_outputs,
+    plotting_available,
+    probe_writable_dir,
+    use_agg,
+)
 from jaxnh._cli.demo import run
 from jaxnh._cli.design import main as design_main
 from jaxnh._cli.fit import add_fit_parser, run_fit
@@ -55,6 +64,9 @@ without matplotlib the results are written without figures (a note on stderr say
 the exit status is the same.
 compiled programs are cached in ~/.cache/jaxnh ($JAXNH_CACHE_DIR; JAXNH_CACHE_DIR=off disables).
 """
+
+DEMO_OUTPUTS = ("variator_methods.png", "fit.json", "fit_data.png", "fit_ratio.png")
+"""The files `jaxnh demo` writes into --out."""
 
 DEMO_EPILOG = """\
 exit status:
@@ -124,7 +136,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _demo(args) -> int:
-    why = check_writable_dir(args.out, "--out")
+    why = (
+        check_writable_dir(args.out, "--out")
+        or probe_writable_dir(args.out, "--out")
+        or occupied_outputs(args.out, DEMO_OUTPUTS, "--out")
+    )
     if why:
         print(f"jaxnh demo: {why}", file=sys.stderr)
         return EXIT_BAD_INPUT
