@@ -1,8 +1,10 @@
 """Why a simulation stopped: `STATUS`, and how a failure reaches the user.
 
 A failure is data: the compiled program returns a `STATUS` item next to the
-solution, with no host callback in it (so the program can be stored in JAX's
-persistent compilation cache and exported). `throw=True` turns a failure into
+solution (jaxnh's own checks add no host callback; diffrax's checks of its
+`SaveAt` do, so a solve's program is not stored in JAX's persistent
+compilation cache unless the user sets `EQX_ON_ERROR=nan` before importing
+equinox). `throw=True` turns a failure into
 a `SimulationError` raised in Python right after the call; when `simulate` is
 itself being traced (inside the user's `jit`, `vmap` or `grad`), the error is
 raised from inside the program instead (`equinox.error_if`).
@@ -178,11 +180,80 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "sol.contacts.stopped_contact give the time and the contact. Raise max_transitions, or "
         "check the contact: a normal force near 0, or μs = μk with a force that hovers at μs N."
     )
+    contact_normal_force_lost = (
+        "A friction contact's normal force N fell to zero during the run. Coulomb's law then "
+        "holds nothing, and a negative N would make the friction force push the body: the model "
+        "given has no lift-off (the normal direction is not one of the mechanism's coordinates), "
+        "so the solve stopped there. sol.contacts.stopped_at and sol.contacts.stopped_contact "
+        "give the time and the contact. Check the contact's normal_force, or model the normal "
+        "direction in the mechanism."
+    )
+    contact_value_invalid = (
+        "A friction contact's value became unphysical during the run: its normal force, μs or μk "
+        "is NaN or inf, μk < 0, or μs < μk. The solve stopped at the time it happened; "
+        "sol.contacts.stopped_at, stopped_contact and stop_cause give the time, the contact and "
+        "the value. Check the contact's normal_force, mu_static and mu_kinetic and the parameters "
+        "they read."
+    )
     constraint_jacobian_singular = (
         "A constraint's velocity Jacobian ∂c_k/∂qd vanishes at the initial state to within √eps of "
         "the constraint's scale (‖∂c_k/∂qd‖·‖the velocities it involves‖ against |c_k(q0, 0, t0)|): "
         "a constraint nonlinear in the velocities starts at a fold, a double root of c_k = 0 in "
         "qd, where no unique motion starts. Start from a state where ∂c/∂qd has full rank."
+    )
+    # --- failures during the run diagnosed at the last state reached (jaxnh._solve.diagnose) ---
+    forces_became_non_finite = (
+        "The applied forces Q(q, qd, t, params) (`forces`) returned NaN or inf during the run, at the last "
+        "state reached or just beyond it: diffrax rejected every step that met the non-finite value and shrank "
+        "its step until max_steps. sol.stats['stopped_at'] is the time the solve stopped (eagerly the error "
+        "gives it). Make `forces` finite along the motion (a division by a velocity or coordinate that reaches "
+        "0, a log or sqrt of a negative number, a table read outside its range)."
+    )
+    potential_became_non_finite = (
+        "The potential energy V(q, t, params) (`potential`) or its gradient ∂V/∂q became NaN or inf during "
+        "the run, at the last state reached or just beyond it: diffrax rejected every step that met the "
+        "non-finite value and shrank its step until max_steps. sol.stats['stopped_at'] is the time the solve "
+        "stopped (eagerly the error gives it). Make `potential` finite and differentiable along the motion."
+    )
+    kinetic_energy_became_non_finite = (
+        "The kinetic energy T(q, qd, t, params) (`kinetic`) or the derivatives the equations take of it (the "
+        "mass matrix ∂²T/∂qd² and the velocity terms) became NaN or inf during the run, at the last state "
+        "reached or just beyond it: diffrax rejected every step that met the non-finite value and shrank its "
+        "step until max_steps. sol.stats['stopped_at'] is the time the solve stopped (eagerly the error gives "
+        "it). Make `kinetic` finite and twice differentiable along the motion."
+    )
+    constraints_became_non_finite = (
+        "The constraints c(q, qd, t, params) (`constraints`, with the rates ġ of `holonomic`) or their "
+        "Jacobians became NaN or inf during the run, at the last state reached or just beyond it: diffrax "
+        "rejected every step that met the non-finite value and shrank its step until max_steps. "
+        "sol.stats['stopped_at'] is the time the solve stopped (eagerly the error gives it). Make the "
+        "constraints finite and differentiable along the motion."
+    )
+    constraints_lost_rank = (
+        "The constraint rows became dependent during the run (∂c/∂qd lost rank: its smallest singular value, "
+        "rows scaled to unit length and columns by the inertias, fell below 1e-6 of the largest at the last "
+        "state reached), so no set of dependent velocities can be solved from the constraints there and "
+        "method='appell' (or 'substituted'), which integrates the independent velocities only, cannot continue: "
+        "its steps shrank until the solve stalled. sol.stats['stopped_at'] is the time (eagerly the error gives "
+        "it). Use method='lagrange', whose multipliers accept a constraint set that loses rank at an instant, "
+        "or write the constraints so that they stay independent along the motion."
+    )
+    root_finder_failed = (
+        "The implicit solver's root finder did not converge: from the last state reached, a trial step (of "
+        "1 to 256 times the mean accepted step) failed in the solver's root finder, while a Newton root "
+        "finder at the solve's tolerances converged on the same step with an error estimate the step-size "
+        "control accepts. diffrax rejects a step whose root find failed and shrinks it (its result code does "
+        "not show why), so the solve ran out of max_steps. Stiffness was not measured and is not the cause "
+        "reported: an implicit solver is not held back by stability. Use a Newton root finder with the solve's "
+        "tolerances, solver=diffrax.Kvaerno5(root_finder=optimistix.Newton(rtol=rtol, atol=atol)) (diffrax's "
+        "default, VeryChord, reuses one Jacobian per step and diverges on steps where it changes fast)."
+    )
+    max_steps_step_bound = (
+        "The maximum number of solver steps was reached because of the step-size bound: the largest step "
+        "dtmax (the run's length over dtmax) and the times at which a step must end (step_ts, profiles' "
+        "breakpoints, and for Kvaerno solvers the report times) force at least half of the steps taken. "
+        "Raise max_steps, or raise dtmax or give fewer step_ts. sol.stats['stopped_at'] is the time the "
+        "solve stopped."
     )
 
 

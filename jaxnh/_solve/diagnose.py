@@ -14,16 +14,19 @@ estimate only in scenes that need them.
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Callable, Optional
 
+import diffrax
+import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import optimistix as optx
 
 from jaxnh._base.linalg import pick, value_and_jacfwd
 from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
-from jaxnh._equations.split import partition_quality
+from jaxnh._equations.split import best_block_margin, partition_quality
 from jaxnh._equations.terms import mass_and_velocity_terms
 from jaxnh._model.checks import constraint_row_checks, mass_matrix_check
 
@@ -34,9 +37,29 @@ __all__ = [
     "initial_checks",
     "diagnose_stall",
     "spectral_radius",
+    "non_finite_function",
+    "root_finder_fails",
+    "step_bound_count",
     "STIFF_ABOVE",
     "STALLED_SPLIT_BELOW",
+    "LOST_RANK_BELOW",
+    "PROBE_STEPS",
 ]
+
+LOST_RANK_BELOW = 1e-6
+"""A stalled solve of Appell's equations whose constraint rows, at the last state reached, have
+no dependent block with a smallest singular value above this (rows scaled to unit length,
+columns by the inertias: `best_block_margin`) has lost the rank of its constraint set. (The
+variator-like test mechanism whose two rows become parallel at t* stalled 1e-16 before t*,
+a margin of 5e-17; a well-posed set starts above 1e3 eps, which the initial checks ensure.)"""
+
+PROBE_STEPS = (0.0, 1e-12, 1e-9, 1e-6, 1e-3)
+"""Steps, as fractions of the run's length, beyond the last state reached at which the user's
+functions are evaluated when a solve stalls (`non_finite_function`): a solve that meets a NaN
+creeps up to it with ever shorter steps, and stops a rounding error before it."""
+
+USER_FUNCTIONS = ("forces", "potential", "kinetic", "constraints")
+"""The user's functions `non_finite_function` reports, in its codes' order (1, 2, 3, 4)."""
 
 STALLED_SPLIT_BELOW = 1e-4
 """A failed solve whose last state has a dependent block this much worse conditioned than
@@ -139,7 +162,17 @@ def initial_checks(form, q, qd, t, params):
     return ok, status, inertias
 
 
-def diagnose_stall(form, y, t, params, status, start_inertias: Optional[jax.Array] = None):
+def diagnose_stall(
+    form,
+    y,
+    t,
+    params,
+    status,
+    start_inertias: Optional[jax.Array] = None,
+    span=None,
+    t1=None,
+    user: Optional[Callable] = None,
+):
     """The status of a failed solve, refined by what is wrong at the last state reached.
 
     A solve that stalls (step limit, step size collapse) where the equations
@@ -147,8 +180,13 @@ def diagnose_stall(form, y, t, params, status, start_inertias: Optional[jax.Arra
     definite, or whose diagonal (an inertia) has fallen below √eps of its value
     at the start, `start_inertias` (from `initial_checks`: the step before the breakdown), or
     (Appell's equations with a fixed partition) a dependent block that has
-    become singular.
+    become singular; the constraint rows that have lost rank (Appell's equations: no dependent
+    block can be solved any more); and a user function (forces, potential, kinetic energy,
+    constraints) that returns NaN or inf at the last state or just beyond it (`span`, `t1`: the
+    run's length and end, for the probes; `user(q, qd, t) -> (mech, q, qd, params)` maps the
+    solve's coordinates to the user's mechanism, for a solve that eliminated coordinates).
     """
+    stalled_steps = (status == STATUS.max_steps_reached) | (status == STATUS.max_steps_rejected)
     stalled = (status != STATUS.successful) & (status != STATUS.singular_split) & (status != STATUS.nonlinear_root_left)
     q, qd = form.unpack(y, t, params)
     # a configuration to judge: finite coordinates (a dependent velocity through a singular block
@@ -171,7 +209,147 @@ def diagnose_stall(form, y, t, params, status, start_inertias: Optional[jax.Arra
     if isinstance(form, Appell) and form.m:
         ratio = partition_quality(form.bound_mech, q, qd, t, params, form.partition(y), form.s - form.m, inertias=d1)[0]
         status = STATUS.where(stalled & finite & pd & (ratio < STALLED_SPLIT_BELOW), STATUS.singular_split, status)
+        if form.m >= 2:
+            # every dependent block singular: the rows themselves have lost rank (a fixed partition's
+            # singular block, which re-choosing would cure, is the singular split above)
+            margin = best_block_margin(form.bound_mech, q, qd, t, params, form.m, inertias=d1)
+            lost = (stalled | (status == STATUS.singular_split)) & finite & pd & (margin < LOST_RANK_BELOW)
+            status = STATUS.where(lost, STATUS.constraints_lost_rank, status)
+    if span is not None and t1 is not None:
+        which = non_finite_function(form, y, t, params, span, t1, user)
+        for code, name in enumerate(USER_FUNCTIONS, start=1):
+            item = getattr(STATUS, f"{_ITEM_OF[name]}_became_non_finite")
+            status = STATUS.where(stalled_steps & finite & (which == code), item, status)
     return status
+
+
+_ITEM_OF = {"forces": "forces", "potential": "potential", "kinetic": "kinetic_energy", "constraints": "constraints"}
+
+
+def non_finite_function(form, y, t, params, span, t1, user: Optional[Callable] = None):
+    """Which user function is NaN or inf at the state y at t, or on its straight continuation
+    (q + h qd, qd) at t + h for the steps h of `PROBE_STEPS` × `span` (none beyond t1): 0 for
+    none, else the position + 1 in `USER_FUNCTIONS` of the first one found (the earliest probe
+    first). The functions are checked with the derivatives the equations take of them: ∂V/∂q,
+    T's mass matrix and velocity terms, c and ∂c/∂(q, qd). `user(q, qd, t)` gives (mechanism,
+    q, qd, params) in the user's own coordinates (default: the formulation's mechanism)."""
+    q, qd = form.unpack(y, t, params)
+    dtype = q.dtype
+    steps = jnp.minimum(jnp.asarray(PROBE_STEPS, dtype) * span, jnp.maximum(t1 - t, 0.0))
+
+    def codes(h):
+        qp, qdp, tp = q + h * qd, qd, t + h
+        if user is None:
+            mech, qp_, qdp_, p = form.mech, qp, qdp, params
+        else:
+            mech, qp_, qdp_, p = user(qp, qdp, tp)
+        state_ok = jnp.all(jnp.isfinite(qp_)) & jnp.all(jnp.isfinite(qdp_)) & jnp.isfinite(tp)
+        qp_ = jnp.where(state_ok, qp_, 0.0)
+        qdp_ = jnp.where(state_ok, qdp_, 0.0)
+        bad = []
+        if mech.forces is not None:
+            bad.append(~_finite(jnp.asarray(mech.forces(qp_, qdp_, tp, p))))
+        else:
+            bad.append(jnp.asarray(False))
+        if mech.potential is not None:
+            potential = mech.potential
+
+            def V(x):
+                return potential(x, tp, p)
+
+            bad.append(~(_finite(V(qp_)) & _finite(jax.grad(V)(qp_))))
+        else:
+            bad.append(jnp.asarray(False))
+        M, hv = mass_and_velocity_terms(mech, qp_, qdp_, tp, p)
+        bad.append(~(_finite(mech.kinetic(qp_, qdp_, tp, p)) & _finite(M) & _finite(hv)))
+        if mech.constraints is not None or mech.holonomic is not None:
+
+            def c(x, v):
+                return mech.constraint(x, v, tp, p)
+
+            dq, dv = jax.jacfwd(c, argnums=(0, 1))(qp_, qdp_)
+            bad.append(~(_finite(c(qp_, qdp_)) & _finite(dq) & _finite(dv)))
+        else:
+            bad.append(jnp.asarray(False))
+        bad = jnp.stack(bad) & state_ok
+        return jnp.where(jnp.any(bad), jnp.argmax(bad) + 1, 0)
+
+    found = jax.vmap(codes)(steps)
+    first = jnp.argmax(found > 0)
+    return jnp.where(jnp.any(found > 0), found[first], 0)
+
+
+def _finite(x):
+    return jnp.all(jnp.isfinite(x))
+
+
+def root_finder_fails(solver, controller, vector_field, y, t, args, hs):
+    """Whether an implicit `solver`'s own root finder is what holds its steps back at y at t: on
+    one of the trial steps `hs` it fails, while a Newton root finder at the solve's tolerances
+    (`optimistix.Newton(rtol, atol)`) converges on the same step and that step's error estimate
+    is within the tolerances (the step-size control would accept it).
+
+    diffrax turns a step whose root find failed into a rejected step (an infinite error
+    estimate), so a solve held back by its root finder shrinks its steps until max_steps with no
+    sign of the cause in its result. The steps are taken as diffrax takes them: a root finder whose
+    tolerances are to be taken from the step-size controller gets the controller's."""
+    inner = controller
+    while isinstance(inner, diffrax.ClipStepSizeController):
+        inner = inner.controller
+    if not all(hasattr(inner, a) for a in ("rtol", "atol", "norm")):
+        return jnp.asarray(False)
+    finder = solver.root_finder
+    names = [a for a in ("rtol", "atol", "norm") if _from_controller(getattr(finder, a, None))]
+    if names:
+        solver = eqx.tree_at(
+            lambda s: tuple(getattr(s.root_finder, a) for a in names),
+            solver,
+            tuple(getattr(inner, a) for a in names),
+        )
+    rtol, atol = getattr(inner, "rtol"), getattr(inner, "atol")
+    newton = eqx.tree_at(lambda s: s.root_finder, solver, optx.Newton(rtol=rtol, atol=atol))
+    terms = diffrax.ODETerm(vector_field)
+
+    def step(solver_, h):
+        state = solver_.init(terms, t, t + h, y, args)
+        y1, err, _, _, result = solver_.step(terms, t, t + h, y, args, state, False)
+        return y1, err, result == diffrax.RESULTS.successful
+
+    def trial(h):
+        _, _, own_ok = step(solver, h)
+        y1, err, newton_ok = step(newton, h)
+        scale = jax.tree_util.tree_map(
+            lambda a, b: inner.atol + inner.rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)), y, y1
+        )
+        ratio = jax.tree_util.tree_map(lambda e, c: e / c, err, scale)
+        accepted = inner.norm(ratio) <= 1.0
+        return ~own_ok & newton_ok & accepted & (h > 0)
+
+    return jnp.any(jax.vmap(trial)(hs))
+
+
+def _from_controller(x) -> bool:
+    """Whether a root finder's attribute is diffrax's placeholder 'take it from the controller'."""
+    return x is not None and type(x).__name__ == "_UseStepSizeTol"
+
+
+def step_bound_count(controller, t0, t):
+    """How many steps between t0 and t the step-size bound forces, at least: (t − t0) / dtmax plus
+    the step_ts inside (t0, t], from the controller (a PIDController, possibly wrapped in
+    a ClipStepSizeController); 0 when it bounds nothing."""
+    count = jnp.zeros((), jnp.asarray(t).dtype)
+    inner = controller
+    while isinstance(inner, diffrax.ClipStepSizeController):
+        step_ts = inner.step_ts
+        if step_ts is not None:
+            step_ts = jnp.asarray(step_ts)
+            count = count + jnp.sum((step_ts > t0) & (step_ts <= t))
+        inner = inner.controller
+    dtmax = getattr(inner, "dtmax", None)
+    if dtmax is not None:
+        dtmax = jnp.asarray(dtmax, count.dtype)
+        count = count + jnp.where(dtmax > 0, (t - t0) / jnp.where(dtmax > 0, dtmax, 1.0), jnp.inf)
+    return count
 
 
 STIFF_ABOVE = 1.5

@@ -34,7 +34,15 @@ from jaxnh._equations import Appell, as_formulation, Formulation, Lagrange
 from jaxnh._equations.scalarize import scalarized
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints, Profile
-from jaxnh._solve.diagnose import diagnose_stall, initial_checks, on_branch, spectral_radius, STIFF_ABOVE
+from jaxnh._solve.diagnose import (
+    diagnose_stall,
+    initial_checks,
+    on_branch,
+    root_finder_fails,
+    spectral_radius,
+    step_bound_count,
+    STIFF_ABOVE,
+)
 from jaxnh._solve.friction import MAX_TRANSITIONS, simulate_friction
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.rk import UnrolledTsit5
@@ -348,6 +356,7 @@ def simulate(
             f"rtol={rtol:g} is below what {q0.dtype} can resolve (machine epsilon {eps:.2g}); "
             f"use rtol ≥ {10 * eps:.1g}" + (" or float64 inputs" if q0.dtype == jnp.float32 else "")
         )
+    _check_dtmax(dtmax, stepsize_controller)
     given_step_ts = step_ts is not None
     declared = declared_breakpoints(params, q0.dtype) if _holds_profile(params_def) else None
     if declared is not None:
@@ -424,8 +433,25 @@ def simulate(
                 mech.check_values(q0, qd0, ts[0], params)
             except ValueError as detail:
                 err = type(err)(f"{err}\nDetails: {detail}", sol.status)
+        stopped = sol.stats.get("stopped_at") if isinstance(sol.stats, dict) else None
+        if not isinstance(err, ValueError) and stopped is not None and np.ndim(stopped) == 0:
+            err = type(err)(f"{err} (The solve stopped at t = {float(stopped):.10g} s.)", sol.status)
         raise err
     return sol
+
+
+def _check_dtmax(dtmax, controller) -> None:
+    """Refuse, naming dtmax, a largest step that is not a positive finite number (given as
+    `dtmax=` or in a `diffrax.PIDController`): the steps could never advance, and the solve would
+    run out of max_steps at t0."""
+    for where, value in (("dtmax", dtmax), ("stepsize_controller.dtmax", getattr(controller, "dtmax", None))):
+        if value is None or is_traced(value):
+            continue
+        number = isinstance(value, (int, float, np.number, np.ndarray, jax.Array)) and not isinstance(value, bool)
+        if not number or np.ndim(value) != 0 or not (0 < float(value) < np.inf):
+            raise ValueError(
+                f"{where}={value!r}: the largest step must be a positive finite time (s), or None for no bound"
+            )
 
 
 def _boolean_condition(conditions, t, y, args) -> bool:
@@ -873,7 +899,39 @@ def _run_traced(
         t_diag = jnp.where(rows.any(), out_ts[first], t_end)
         result = STATUS.where((result == STATUS.successful) & rows.any(), STATUS.non_finite_output, result)
         form_, y_, t_, params_ = no_grad((form, y_diag, t_diag, run))
-        result = diagnose_stall(form_, y_, t_, params_, result, start_inertias=inertias)
+        user: Optional[Callable] = None
+        if expand is not None and full is not None:  # the user's functions, in all coordinates
+            full_, expand_ = full, expand
+
+            def user_(q_, qd_, t__):
+                return (full_, *expand_(q_, qd_, t__, params_))
+
+            user = user_
+
+        steps_ran_out = (result == STATUS.max_steps_reached) | (result == STATUS.max_steps_rejected)
+        result = diagnose_stall(
+            form_, y_, t_, params_, result, start_inertias=inertias, span=tsr[-1] - t0r, t1=tsr[-1], user=user
+        )
+        stats["stopped_at"] = t_diag
+        # steps that ran out for want of another cause: a step-size bound that forced most of them,
+        # or (an implicit solver) a root finder that fails on a step of the length the solve took
+        still = steps_ran_out & ((result == STATUS.max_steps_reached) | (result == STATUS.max_steps_rejected))
+        num_steps = stats["num_steps"]
+        t_stop = jax.lax.stop_gradient(t_end)
+        bound = step_bound_count(controller, t0r, t_stop) >= 0.5 * num_steps
+        result = STATUS.where(still & bound, STATUS.max_steps_step_bound, result)
+        if isinstance(solver, diffrax.AbstractImplicitSolver) and hasattr(solver, "root_finder"):
+            # trial steps from the mean accepted step up to 256 times it (the step-size control lets a
+            # step grow until the root finder fails on it)
+            mean = (t_stop - t0r) / jnp.maximum(stats["num_accepted_steps"], 1)
+            hs = jnp.minimum(mean * 4.0 ** jnp.arange(5, dtype=t0r.dtype), tsr[-1] - t_stop)
+            probe = still & ~bound & (mean > 0)
+            fails = jax.lax.cond(
+                probe,
+                lambda: root_finder_fails(solver, controller, field, *no_grad((y_end, t_stop, args, hs))),
+                lambda: jnp.asarray(False),
+            )
+            result = STATUS.where(probe & fails, STATUS.root_finder_failed, result)
     if not (isinstance(adjoint, ForwardSensitivity) and adjoint.error_control) and _explicit(solver):
         # derivatives through the steps of an explicit method held back by stability are wrong:
         # say so (forward sensitivities in the error control are right, and need no check). The
