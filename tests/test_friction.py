@@ -584,3 +584,114 @@ def test_shipped_friction_variator_force_is_the_papers_multiplier_over_rho():
     F = np.asarray(sol.multipliers)[:, 0]
     scale = float(np.max(np.abs(F)))
     np.testing.assert_allclose(F, np.asarray(lam / rho), atol=100 * RTOL * scale)
+
+
+# --- values along the motion, and transitions inside a step --------------------------------------
+
+# A cylinder thrown without spin (the level-ground closed form above) whose normal force is
+# N = m g (1 − a t) and whose μk turns NaN after t_nan: one mechanism, two failures by parameters.
+VARYING = nh.Mechanism(
+    cylinder_T,
+    constraints=cylinder_slip,
+    potential=cylinder_V,
+    forces=cylinder_push,
+    contacts=nh.FrictionContact(
+        0,
+        normal_force=lambda q, qd, t, p: p["m"] * G * (1 - p["a"] * t),
+        mu_static=_p("mu_s"),
+        mu_kinetic=lambda q, qd, t, p: jnp.where(t > p["t_nan"], jnp.nan, p["mu_k"]),
+        name="ground",
+    ),
+)
+
+
+def _varying(a, t_nan):
+    p = {**CYL, "a": a, "t_nan": t_nan}
+    return nh.simulate(VARYING, p, jnp.zeros(2), jnp.array([3.0, 0.0]), TS, rtol=RTOL, atol=ATOL,
+                       max_transitions=4, record=("energy",), throw=False)  # fmt: skip
+
+
+def test_a_normal_force_that_falls_to_zero_stops_the_solve_there():
+    """N = m g (1 − 4t) reaches 0 at t = 0.25 s while the cylinder still slides (t* = 0.34 s at
+    μk = 0.3): friction would push it after that. The solve stops at the zero, located by the
+    event's root finder to 1e3 eps of the time (so 1e-12 s holds), with the status, the contact, the
+    cause and the time in the message; the reports before it are right (the kinetic energy falls),
+    those after are NaN."""
+    sol = _varying(4.0, 10.0)
+    c = contacts(sol)
+    assert bool(sol.status == nh.STATUS.contact_normal_force_lost), sol.message
+    assert abs(float(c.stopped_at) - 0.25) <= 1e-12
+    assert int(c.stopped_contact) == 0 and nh.ContactDiagnostics.STOP_CAUSES[int(c.stop_cause)] == (
+        "normal force reached zero"
+    )
+    assert "normal force reached zero" in sol.message and "'ground'" in sol.message and "t = 0.25" in sol.message
+    e = np.asarray(sol.energy)
+    before = np.asarray(TS) < 0.25
+    assert np.all(np.isfinite(e[before])) and np.all(np.diff(e[before]) < 0) and np.all(np.isnan(e[~before]))
+    with pytest.raises(nh.SimulationError, match="normal force reached zero"):
+        nh.simulate(VARYING, {**CYL, "a": 4.0, "t_nan": 10.0}, jnp.zeros(2), jnp.array([3.0, 0.0]), TS,
+                    rtol=RTOL, atol=ATOL, max_transitions=4, record=("energy",))  # fmt: skip
+
+
+def test_a_contact_value_that_becomes_nan_stops_the_solve_naming_it():
+    """μk = NaN from t = 0.05 s: the solve stops there (located to the root finder's 1e3 eps), naming
+    the contact and μk, instead of shrinking its steps to max_steps and blaming stiffness."""
+    sol = _varying(0.0, 0.05)
+    c = contacts(sol)
+    assert bool(sol.status == nh.STATUS.contact_value_invalid), sol.message
+    assert abs(float(c.stopped_at) - 0.05) <= 1e-12
+    assert nh.ContactDiagnostics.STOP_CAUSES[int(c.stop_cause)] == "μk not finite or negative"
+    assert "μk" in sol.message and "stiff" not in sol.message
+    # the same mechanism with good values is the closed form: nothing of the checks changes a motion
+    good = _varying(0.0, 10.0)
+    t_star, _, x_T, _ = level_ground_closed_form(3.0, CYL["mu_k"], CYL["k"], CYL["m"], 1.0)
+    assert abs(float(contacts(good).transition_times[0, 0]) - t_star) <= 1e-9
+    assert abs(float(good.q[-1, 0]) - x_T) <= 1e-9
+
+
+def _belt(k, cap, method):
+    """A block (1 kg) on a spring (k, N/m, anchored) on a belt moving at vb = 0.1 m/s, pressed by
+    N = 10 N, μs = 0.5, μk = 0.3; x in m, the slip w = x' − vb. One coordinate and one row held by
+    friction: while it sticks it has no independent velocity (Appell's form: none but the slip)."""
+    m, vb, N = 1.0, 0.1, 10.0
+    mech = nh.Mechanism(
+        lambda q, qd, t, p: 0.5 * m * qd[0] ** 2,
+        constraints=lambda q, qd, t, p: jnp.stack([qd[0] - vb]),
+        potential=lambda q, t, p: 0.5 * p["k"] * q[0] ** 2,
+        contacts=nh.FrictionContact(0, N, 0.5, 0.3, name="belt"),
+    )
+    ts = jnp.linspace(0.0, 1.0, 201)
+    return nh.simulate(mech, {"k": jnp.asarray(k)}, jnp.zeros(1), jnp.array([vb]), ts, rtol=RTOL, atol=ATOL,
+                       max_transitions=cap, throw=False, method=method)  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
+def test_stick_slip_on_a_stiff_belt_finds_every_transition(method):
+    """Stick–slip closed form. Stuck, x grows at vb until k x = μs N; then it slips, oscillating about
+    x_e = μk N / k at ω = √(k/m) from (x − x_e, x') = (X, vb), X = (μs − μk) N / k, and the slip
+    w = x' − vb returns to zero (it locks) at (−X, vb), after (2π − 2 atan(ω X / vb)) / ω; stuck
+    again at x = x_e − X, the belt carries it back to x_e + X in 2 X / vb. Near the lock the slip
+    rises to zero over a window far shorter than a step (k = 1e6: 40 µs in a cycle of 6.3 ms),
+    which a step must not carry it across: every lock is found, at the closed-form times (each
+    located to the root finder's tolerance and the solve's rtol, 1e-8 s over 160 cycles)."""
+    k, m, vb, N = 1e6, 1.0, 0.1, 10.0
+    omega, X = math.sqrt(k / m), 0.2 * N / k
+    slip, stick = (2 * math.pi - 2 * math.atan(omega * X / vb)) / omega, 2 * X / vb
+    onset0 = 0.5 * N / k / vb
+    expected = [onset0]
+    while expected[-1] + slip < 1.0:
+        expected.append(expected[-1] + slip)  # lock
+        if expected[-1] + stick < 1.0:
+            expected.append(expected[-1] + stick)  # onset
+    sol = _belt(k, 400, method)
+    assert bool(sol.status == nh.STATUS.successful), sol.message
+    times = [t for t, _ in contacts(sol).transitions(0)]
+    assert len(times) == len(expected) == 319
+    np.testing.assert_allclose(times, expected, rtol=0, atol=1e-8)
+    x = np.asarray(sol.q[:, 0])
+    amplitude = math.hypot(X, vb / omega)
+    assert np.all(x <= 0.3 * N / k + amplitude * (1 + 1e-6)) and np.all(x >= 0.3 * N / k - amplitude * (1 + 1e-6))
+    # with the default cap the transitions come too fast: the cap's status, never success
+    capped = _belt(k, 32, method)  # (simulate's default max_transitions)
+    assert bool(capped.status == nh.STATUS.friction_transitions_exceeded), capped.message

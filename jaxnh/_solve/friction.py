@@ -88,6 +88,7 @@ __all__ = [
     "ContactDiagnostics",
     "simulate_friction",
     "TRANSITION_KINDS",
+    "STOP_CAUSES",
     "MAX_TRANSITIONS",
 ]
 
@@ -99,6 +100,22 @@ TRANSITION_KINDS = ("none", "stick→slip", "slip→stick", "slip reversal")
 locks again, 3 its slip stops and restarts in another direction (reversed, for a line contact)."""
 
 ONSET, LOCK, REVERSAL = 1, 2, 3
+
+STOP_CAUSES = (
+    "none",
+    "transition cap",
+    "normal force reached zero",
+    "normal force not finite",
+    "μs not finite or below μk",
+    "μk not finite or negative",
+)
+"""Names of the codes in `ContactDiagnostics.stop_cause`: why the contact `stopped_contact` stopped the solve."""
+
+CAP, N_LOST = 1, 2
+
+LOST_BELOW = 1e-6
+"""At an event, a contact whose normal force is below this fraction of its value at the segment's start
+(the normal-force guard) has lost it: the event is that guard's zero, located in time to ROOT_TOLERANCE."""
 
 ROOT_TOLERANCE = 1e3
 """Transition times are located to ROOT_TOLERANCE · eps (relative and absolute, s)."""
@@ -120,6 +137,7 @@ class ContactDiagnostics(eqx.Module):
 
     Attributes:
         KINDS: the names of the transition kinds, by code (`TRANSITION_KINDS`).
+        STOP_CAUSES: the names of the codes of `stop_cause`.
         names: contact names (`FrictionContact.name`, or `contact <i>`).
         transition_times: (c, max_transitions), s: the times at which each
             contact changed mode, in order; +inf where unused.
@@ -140,14 +158,21 @@ class ContactDiagnostics(eqx.Module):
             stick→slip transition); NaN for a contact that never sticks.
         min_margin: (c,), N: the smallest stick margin μs N − ‖λ‖ over the
             same instants (0 at a stick→slip transition).
-        stopped_at: s, the time at which the transition cap stopped the
-            solve (NaN if it did not).
-        stopped_contact: int, the contact whose transition hit the cap
-            (−1 if none).
+        stopped_at: s, the time at which a contact stopped the solve (NaN if
+            none did): the transition cap, or a contact value that became
+            unphysical (`stop_cause`).
+        stopped_contact: int, the contact that stopped the solve (−1 if none).
+        stop_cause: int, why (`STOP_CAUSES`): 1 the transition cap, 2 the
+            normal force fell to zero, 3 the normal force, 4 μs, 5 μk became
+            NaN, inf or unphysical (0 if the solve was not stopped by a contact).
+        initial_slipping: (c,) bool: which contacts slip at the start (the
+            start is not a transition: `transitions` lists changes of mode only,
+            and `slip_intervals` starts at ts[0] for such a contact).
         transitions_used: int, the number of restarts.
     """
 
     KINDS: ClassVar[tuple] = TRANSITION_KINDS
+    STOP_CAUSES: ClassVar[tuple] = STOP_CAUSES
 
     names: tuple = eqx.field(static=True)
     transition_times: Float[Array, "c k"]
@@ -164,6 +189,8 @@ class ContactDiagnostics(eqx.Module):
     stopped_at: Float[Array, ""]
     stopped_contact: Int[Array, ""]
     transitions_used: Int[Array, ""]
+    stop_cause: Int[Array, ""]
+    initial_slipping: Bool[Array, " c"]
 
     def _index(self, contact: int | str) -> int:
         if isinstance(contact, str):
@@ -173,7 +200,8 @@ class ContactDiagnostics(eqx.Module):
         return int(contact)
 
     def transitions(self, contact: int | str = 0) -> list:
-        """`[(time s, kind name), ...]` of one contact (index or name), in order."""
+        """`[(time s, kind name), ...]` of one contact (index or name), in order: its changes of mode
+        (a contact slipping at the start has no entry for it: see `initial_slipping`)."""
         j = self._index(contact)
         times = np.asarray(self.transition_times)[j]
         kinds = np.asarray(self.transition_kinds)[j]
@@ -214,12 +242,18 @@ class ContactDiagnostics(eqx.Module):
         return "\n".join(lines)
 
     def annotate(self, message: str, status: STATUS) -> str:
-        """`message`, with the time and the contact when the transition cap stopped the solve."""
-        if np.ndim(status_code(status)) != 0 or not bool(status == STATUS.friction_transitions_exceeded):
+        """`message`, with the time, the contact and the cause when a contact stopped the solve."""
+        if np.ndim(status_code(status)) != 0 or np.ndim(self.stop_cause) != 0:
+            return message
+        cause = int(np.asarray(self.stop_cause))
+        if cause == 0:
             return message
         j = int(np.asarray(self.stopped_contact))
         name = self.names[j] if 0 <= j < len(self.names) else "?"
-        return f"{message} Stopped at t = {float(np.asarray(self.stopped_at)):.12g} s by contact {j} ({name!r})."
+        return (
+            f"{message} Stopped at t = {float(np.asarray(self.stopped_at)):.12g} s by contact {j} ({name!r}): "
+            f"{STOP_CAUSES[cause]}."
+        )
 
 
 class Mode(eqx.Module):
@@ -233,12 +267,15 @@ class Mode(eqx.Module):
             (√eps of its velocity scale): the direction used is that of
             `(|w·d| + tau) d + w⊥`, exact where ‖w‖ ≫ tau and equal to d at w = 0.
         scale: (c,) m/s, the contact's velocity scale (`constraint_scale` of its rows).
+        force_scale: (c,) N, |N| at the start of the segment (plus the smallest normal
+            number): the scale of the normal-force guard.
     """
 
     slipping: Bool[Array, " c"]
     direction: Float[Array, " f"]
     tau: Float[Array, " c"]
     scale: Float[Array, " c"]
+    force_scale: Float[Array, " c"]
 
 
 # --- the equations of motion in a mode ------------------------------------------------------------
@@ -315,6 +352,14 @@ class _Friction(eqx.Module):
         vals = [c.values(q, qd, t, params) for c in self.contacts]
         return tuple(jnp.stack([v[i] for v in vals]).astype(qd.dtype) for i in range(3))
 
+    @staticmethod
+    def invalid(N, mus, muk):
+        """(c,) int: 0 where the contact's values are physical, else the `STOP_CAUSES` code of the first
+        value that is not (the normal force's sign is the normal-force guard's, not checked here)."""
+        bad_mus = ~jnp.isfinite(mus) | (mus < muk)
+        bad_muk = ~jnp.isfinite(muk) | (muk < 0)
+        return jnp.where(~jnp.isfinite(N), 3, jnp.where(bad_mus & jnp.isfinite(muk), 4, jnp.where(bad_muk, 5, 0)))
+
     def slip(self, q, qd, t, params):
         """Slip velocities w of the friction rows (f,), m/s."""
         constraints = self.mech.constraints
@@ -340,6 +385,9 @@ class _Friction(eqx.Module):
     def kinetic(self, w, mode: Mode, N, muk):
         """Kinetic friction forces (f,), N, on the rows of slipping contacts (0 on the others)."""
         size = jnp.stack([-muk[j] * N[j] for j in self.owner])
+        # finite where a value is not: the field stays finite up to the guard that stops the solve there
+        # (`validity`), so the step that meets the bad value is accepted and the event located
+        size = jnp.where(jnp.isfinite(size), size, 0.0)
         return jnp.where(self.released(mode.slipping, w.dtype) > 0, size * self.directions(w, mode), 0.0)
 
     # Lagrange's equations with some rows released: the masked KKT system
@@ -372,9 +420,13 @@ class _Friction(eqx.Module):
         return [pick(lam, c.rows) for c in self.contacts]
 
     def guards(self, q, qd, t, params, mode: Mode):
-        """(c,) normalised guards, positive while the mode holds: slip speed along the slip
-        direction over the velocity scale (slipping); (μs N − ‖λ‖)/(μs N + ‖λ‖) (sticking)."""
-        _, lam, w, (N, mus, _) = self.kkt(q, qd, t, params, mode)
+        """(2c,) normalised guards, positive while the mode holds. The first c: slip speed along the
+        slip direction over the velocity scale (slipping); (μs N − ‖λ‖)/(μs N + ‖λ‖) (sticking).
+        The last c, the contacts' validity: N over its scale at the segment's start where the values
+        are physical (`invalid`), else −1 (the solve stops there: a contact that loses its normal
+        force has no lift-off in this model, and friction must never push)."""
+        _, lam, w, (N, mus, muk) = self.kkt(q, qd, t, params, mode)
+        bad = self.invalid(N, mus, muk) != 0
         out = []
         for j, (lj, idx) in enumerate(zip(self.contact_forces(lam), self.local)):
             wj, d = pick(w, idx), pick(mode.direction, idx)
@@ -382,8 +434,9 @@ class _Friction(eqx.Module):
             norm = jnp.abs(lj[0]) if lj.shape[0] == 1 else _safe_norm(lj)
             cone = mus[j] * N[j]
             margin = (cone - norm) / (cone + norm + jnp.finfo(q.dtype).tiny)
-            out.append(jnp.where(mode.slipping[j], along, margin))
-        return jnp.stack(out)
+            out.append(jnp.where(bad[j], 1.0, jnp.where(mode.slipping[j], along, margin)))
+        validity = jnp.where(bad, -1.0, N / mode.force_scale)
+        return jnp.concatenate([jnp.stack(out), validity.astype(q.dtype)])
 
     def rates(self, w, F, mode: Mode):
         """(c, 2): slip speed (m/s) and dissipated power −F·w (W) of each slipping contact. The
@@ -507,6 +560,7 @@ class _Friction(eqx.Module):
         tiny = jnp.finfo(q.dtype).tiny
         scale = jnp.stack([_safe_norm(pick(row_scale, c.rows)) for c in self.contacts]) + tiny
         tau = math.sqrt(eps) * scale
+        force_scale = jnp.where(jnp.isfinite(N), jnp.abs(N), 1.0) + tiny
         rest, forced, direction = [], [], []
         for j, idx in enumerate(self.local):
             wj = pick(w, idx)
@@ -533,7 +587,7 @@ class _Friction(eqx.Module):
         direction = list(direction)
         E = self.scatter(q.dtype)
         for it in range(self.nc + 1):
-            mode = Mode(~engaged, jnp.concatenate(direction), tau, scale)
+            mode = Mode(~engaged, jnp.concatenate(direction), tau, scale, force_scale)
             _, lam, _, _ = self.kkt(q, qd, t, params, mode)
             forces = self.contact_forces(lam)
             viol = []
@@ -549,7 +603,7 @@ class _Friction(eqx.Module):
                 direction[j] = jnp.where(out, onset, direction[j])
                 viol.append(out)
             engaged = engaged & ~jnp.stack(viol)
-        new = Mode(~engaged, jnp.concatenate(direction), tau, scale)
+        new = Mode(~engaged, jnp.concatenate(direction), tau, scale, force_scale)
         if initial:
             return new, jnp.zeros((self.nc,), jnp.int32)
         changed_dir = jnp.stack([jnp.any(pick(new.direction, idx) != pick(prev.direction, idx)) for idx in self.local])
@@ -649,6 +703,7 @@ class _Args(eqx.Module):
     mode: Mode
     perm: Any
     ok: Any
+    t_end: Any
 
 
 class _Field(eqx.Module):
@@ -673,23 +728,71 @@ class _Guard(eqx.Module):
         # included) to < 0. A guard that starts at exactly 0 (the slip speed of a contact released
         # at rest) fires only if it then goes negative, never by growing from 0.
         # in the default float dtype: diffrax pairs it with a Python 0.0 in a `lax.cond`
-        return jnp.where(args.ok, -jnp.min(g), -1.0).astype(jnp.result_type(float))
+        # a member that is not integrating (a failed check, or a finished solve whose segment runs under
+        # vmap) gets a guard that never crosses zero (t ≤ t_end) and has a slope: a flat one would make
+        # the event's implicit derivative, computed for every member under vmap, divide by zero
+        idle = t - args.t_end - 1.0
+        return jnp.where(args.ok, -jnp.min(g), idle).astype(jnp.result_type(float))
 
 
-class _SplitWatch(StepMaps):
-    """Fail a step of Appell's form during which the dependent block changed sign (passed through
-    singular): the partition is fixed within a segment."""
+def _hermite_minimum(g0, g1, d0, d1):
+    """The smallest value at an interior local minimum (s in (0, 1)) of the cubic Hermite polynomial
+    with values g0, g1 and slopes d0, d1 (per unit s) at s = 0, 1; +inf where it has none. Elementwise."""
+    # p'(s) = a s² + b s + d0
+    a = 6 * (g0 - g1) + 3 * (d0 + d1)
+    b = -6 * (g0 - g1) - 4 * d0 - 2 * d1
+    disc = b * b - 4 * a * d0
+    root = jnp.sqrt(jnp.maximum(disc, 0.0))
+    safe_a = jnp.where(a != 0, a, 1.0)
+    # the minimum is the root of p' where p'' = 2 a s + b > 0: s = (−b + √disc) / 2a (a ≠ 0), −d0/b (a = 0)
+    s = jnp.where(a != 0, (-b + root) / (2 * safe_a), -d0 / jnp.where(b != 0, b, 1.0))
+    has = (disc >= 0) & (s > 0) & (s < 1) & ((a != 0) | (b > 0))
+    s = jnp.clip(s, 0.0, 1.0)
+    h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
+    return jnp.where(has, h00 * g0 + h10 * d0 + h01 * g1 + h11 * d1, jnp.inf)
+
+
+class _Watch(StepMaps):
+    """Checks of every step of a segment.
+
+    * No transition inside a step: a guard positive at both ends of a step may have crossed zero and
+      come back within it (a slip that reverses and re-accelerates under the segment's frozen kinetic
+      force, between two ends that both slip the old way; a force that leaves the cone and returns).
+      Such a guard has a local minimum inside the step; the step is rejected unless the cubic through
+      the guard's values and rates at both ends puts that minimum at no less than half the smaller end
+      value. Steps near a guard's minimum so shrink until they resolve it: then a minimum below zero
+      is an end of a step, where the event finds it, and a minimum above zero is accepted.
+    * Appell's form: fail a step during which the dependent block changed sign (passed through
+      singular), since the partition is fixed within a segment.
+    """
 
     system: _Friction
 
+    def _guards_and_rates(self, t, y, args: _Args):
+        def g(t_, y_):
+            q, qd = self.system.unpack(y_, t_, args.params, args.mode, args.perm)
+            return self.system.guards(q, qd, t_, args.params, args.mode)
+
+        ydot = _Field(self.system)(t, y, args)
+        return jax.jvp(g, (t, y), (jnp.ones_like(t), ydot))
+
     def post(self, t0, y0, t1, y1, args: _Args, /):
         f = self.system
+        # a check: it decides a rejection, no derivative flows through it (and none is traced)
+        t0s, y0s, t1s, y1s, args_s = no_grad((t0, y0, t1, y1, args))
+        (g0, d0), (g1, d1) = self._guards_and_rates(t0s, y0s, args_s), self._guards_and_rates(t1s, y1s, args_s)
+        h = jnp.asarray(t1s) - jnp.asarray(t0s)
+        both = (g0 > 0) & (g1 > 0)
+        low = _hermite_minimum(g0, g1, h * d0, h * d1)
+        reject = jnp.any(both & (low < 0.5 * jnp.minimum(g0, g1))) & args_s.ok
+        if f.kind != "appell":
+            return y1, None, reject, False
         det = []
-        for y, t in ((y0, t0), (y1, t1)):
-            A = jax.jacfwd(lambda x: f.mech.constraint(y[0], x, t, args.params))(jnp.zeros((f.s,), y[0].dtype))
-            det.append(block_determinant(A, args.perm, f.k))
-        crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & args.ok
-        return y1, None, False, crossed
+        for y, t in ((y0s, t0s), (y1s, t1s)):
+            A = jax.jacfwd(lambda x: f.mech.constraint(y[0], x, t, args_s.params))(jnp.zeros((f.s,), y[0].dtype))
+            det.append(block_determinant(A, args_s.perm, f.k))
+        crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & args_s.ok
+        return y1, None, reject, crossed
 
 
 def _initial_checks(f: _Friction, q, qd, t, params):
@@ -761,7 +864,8 @@ def _run_traced(
     if graph_throw:
         q0r = raise_in_graph(q0r, status0)
     nan = jnp.full((), jnp.nan, dtype)
-    dummy = Mode(jnp.zeros((nc,), bool), jnp.zeros((f.nf,), dtype), jnp.ones((nc,), dtype), jnp.ones((nc,), dtype))
+    ones = jnp.ones((nc,), dtype)
+    dummy = Mode(jnp.zeros((nc,), bool), jnp.zeros((f.nf,), dtype), ones, ones, ones)
     # The modes carry no derivative: slipping flags are discrete, a line contact's direction is ±1,
     # and a two-row contact's direction enters the motion only where ‖w‖ ≲ tau (the kinetic force
     # follows w elsewhere) and the guard w·d only through w at its root, where w = 0.
@@ -770,7 +874,7 @@ def _run_traced(
     mode0 = _where_tree(ok, mode0, dummy)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
     event = diffrax.Event(_Guard(f), root_finder=_EventRootFinder(rtol=tol, atol=tol), direction=True)
-    maps = _SplitWatch(f) if f.kind == "appell" else None
+    maps = _Watch(f)
     field = _Field(f)
     acc0 = jnp.zeros((nc, 2), dtype)
     reports0 = (
@@ -794,17 +898,22 @@ def _run_traced(
         used=jnp.zeros((), jnp.int32),
         stopped_at=nan,
         stopped_contact=-jnp.ones((), jnp.int32),
+        stop_cause=jnp.zeros((), jnp.int32),
         steps=jnp.zeros((3,), jnp.int32),
     )
 
     def work(carry: dict[str, Any], k) -> tuple[dict[str, Any], dict[str, Any]]:
         active = ~carry["done"]
         mode = carry["mode"]
-        ta = jnp.where(active, carry["t"], t_end)
+        # a member that is not integrating (under vmap, `work` also runs for finished members) solves a
+        # unit interval ending at t_end with a zero field and a guard that never fires (`_Field`, `_Guard`):
+        # a zero-length solve there would have an interpolant over an empty step, whose derivatives are
+        # not finite, and reverse mode through the discarded branch would carry them into the gradient
+        ta = jnp.where(active, carry["t"], t_end - 1.0)
         q, qd = carry["q"], carry["qd"]
         perm = f.partition(q, qd, ta, params)
         y0 = f.state(q, qd, ta, params, mode, perm, carry["acc"])
-        args = _Args(params, mode, perm, ok & active)
+        args = _Args(params, mode, perm, ok & active, t_end)
         saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=jnp.clip(tsr, ta, t_end)), diffrax.SubSaveAt(t1=True)])
 
         sol = diffrax_solve(
@@ -852,13 +961,24 @@ def _run_traced(
         q1, qd1 = f.unpack(y1s, t1s, params, mode, perm)
         acc1 = y1s[-1]
         g = f.guards(q1, qd1, t1s, params, mode)
-        j = jnp.argmin(g)
+        j = jnp.argmin(g[:nc])  # the mode guards' scales differ (a slip released at rest: ~1/tiny)
         fired_mask = jnp.arange(nc) == j
         qs1, qds1, ts1, ps1, mode_s = no_grad((q1, qd1, t1s, params, mode))
         new_mode, kinds = f.resolve(qs1, qds1, ts1, ps1, mode_s, fired_mask, initial=False)
+        # a validity guard (`guards`' last c) stops the solve: the normal force fell to zero, or a value
+        # jumped to NaN, inf or an unphysical one (located to the root finder's tolerance, so it is read
+        # at the event and just after it, where the value's own time dependence has crossed)
+        probe = ts1 + 4 * tol * (1 + jnp.abs(ts1))
+        bad = jnp.maximum(f.invalid(*f.values(qs1, qds1, ts1, ps1)), f.invalid(*f.values(qs1, qds1, probe, ps1)))
+        any_bad = jnp.any(bad != 0)
+        # N over its scale at the segment's start is 0 at its event to the root finder's tolerance in t
+        zero_force = g[nc:] <= LOST_BELOW
+        lost = fired & (any_bad | jnp.any(zero_force))
+        lost_contact = jnp.where(any_bad, jnp.argmax(bad != 0), jnp.argmax(zero_force)).astype(jnp.int32)
+        lost_cause = jnp.where(any_bad, jnp.max(bad), N_LOST).astype(jnp.int32)
         last = k == K - 1
-        over = fired & last
-        apply = fired & ~last
+        over = fired & last & ~lost
+        apply = fired & ~last & ~lost
         counts = carry["counts"]
         slot = jnp.minimum(counts, cap - 1)
         changed = apply & (kinds != 0)
@@ -870,6 +990,11 @@ def _run_traced(
         if f.kind == "appell":
             status = STATUS.where(active & failed & (result == STATUS.singular), STATUS.singular_split, status)
         status = STATUS.where(over, STATUS.friction_transitions_exceeded, status)
+        lost_status = STATUS.where(  # pyright: ignore[reportArgumentType]
+            lost_cause == N_LOST, STATUS.contact_normal_force_lost, STATUS.contact_value_invalid
+        )
+        status = STATUS.where(lost, lost_status, status)
+        stopped = over | lost
         new: dict[str, Any] = dict(
             t=jnp.where(active, t1s, carry["t"]),
             q=jnp.where(active, q1, q),
@@ -883,8 +1008,11 @@ def _run_traced(
             kinds=kinds_arr,
             counts=counts + changed.astype(jnp.int32),
             used=carry["used"] + apply.astype(jnp.int32),
-            stopped_at=jnp.where(over, t1s, carry["stopped_at"]),
-            stopped_contact=jnp.where(over, j.astype(jnp.int32), carry["stopped_contact"]),
+            stopped_at=jnp.where(stopped, t1s, carry["stopped_at"]),
+            stopped_contact=jnp.where(
+                over, j.astype(jnp.int32), jnp.where(lost, lost_contact, carry["stopped_contact"])
+            ),
+            stop_cause=jnp.where(over, CAP, jnp.where(lost, lost_cause, carry["stop_cause"])),
             steps=carry["steps"] + jnp.where(active, stats, 0),
         )
         seg: dict[str, Any] = dict(
@@ -967,6 +1095,8 @@ def _run_traced(
         min_margin=min_margin + link,
         stopped_at=final["stopped_at"],
         stopped_contact=final["stopped_contact"],
+        stop_cause=final["stop_cause"],
+        initial_slipping=mode0.slipping & ok,
         transitions_used=final["used"],
     )
     steps = final["steps"]
@@ -1061,9 +1191,12 @@ def simulate_friction(
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
     s = q0.shape[0]
-    if isinstance(form, Appell) and m >= s:
+    if isinstance(form, Appell) and m > s:
+        # (m = s is a mechanism that moves only while a contact slips: while all stick it has no
+        # independent velocity, and the released rows' slip velocities are its quasi-velocities)
         raise ValueError(
-            f"method='appell': the mechanism has m={m} constraints for s={s} coordinates; use method='lagrange'"
+            f"method='appell': the mechanism has m={m} constraints for s={s} coordinates, more than its "
+            "velocities: the dependent-velocity block cannot be square; use method='lagrange'"
         )
     independent = form.independent if isinstance(form, Appell) else None
     if independent is None and isinstance(form, Appell):
