@@ -695,3 +695,29 @@ def test_stick_slip_on_a_stiff_belt_finds_every_transition(method):
     # with the default cap the transitions come too fast: the cap's status, never success
     capped = _belt(k, 32, method)  # (simulate's default max_transitions)
     assert bool(capped.status == nh.STATUS.friction_transitions_exceeded), capped.message
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
+def test_vmap_of_grad_agrees_with_a_loop_of_grad(method):
+    """`jax.vmap(jax.grad(f))` through the restarts equals `jax.grad` member by member (rounding of
+    the same operations in a batch: 1e-12), and the closed form dx(T)/dμk = −g t*²/2 to the
+    derivative tolerance of this module (1e-7).
+
+    Under vmap every segment runs for every member, and in the segments in which no member has an
+    event (after the lock, or at rest with no transition at all) the reverse pass must not run
+    diffrax's event root find on stand-in residuals: it used to, and lineax raised on the
+    non-finite cotangent of the event time. The batch holds two identical members."""
+
+    def x_end(mu_k, v0):
+        return _cylinder(mu_k, method, v0=v0).q[-1, 0]
+
+    mus = jnp.array([0.3, 0.3, 0.2])
+    looped = np.array([float(jax.grad(x_end)(m, 3.0)) for m in mus])
+    batched = np.asarray(jax.vmap(jax.grad(x_end), in_axes=(0, None))(mus, 3.0))
+    np.testing.assert_allclose(batched, looped, rtol=0, atol=1e-12)
+    for m, d in zip(np.asarray(mus), looped):
+        t_star = level_ground_closed_form(3.0, float(m), CYL["k"], CYL["m"], 1.0)[0]
+        assert abs(d - (-0.5 * G * t_star**2)) < 1e-7
+    still = jax.vmap(jax.grad(x_end), in_axes=(0, None))(mus, 0.0)  # at rest: no event anywhere
+    assert np.all(np.asarray(still) == 0.0)

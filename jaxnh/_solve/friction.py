@@ -1032,8 +1032,14 @@ def _run_traced(
 
     def segment(carry: dict[str, Any], k) -> tuple[dict[str, Any], dict[str, Any]]:
         # the solve's segments stop early; the rest of the scan skips them (under vmap both branches
-        # run, and `work` leaves a finished member unchanged too)
-        return jax.lax.cond(carry["done"], idle, work, carry, k)
+        # run, and `work` leaves a finished member unchanged too). `work` is rematerialised for reverse
+        # mode: under vmap this cond becomes a select, which would batch every residual `work` saves,
+        # among them the predicate of diffrax's own cond around its event root find ("did any member
+        # have an event?"); batched, the backward pass would run that root find's transpose in
+        # segments where no member had an event, on zero-filled residuals (an interpolant over
+        # [0, 0]: a NaN cotangent that lineax refuses). Recomputed in the backward pass, the
+        # predicate is unbatched again, as diffrax intends.
+        return jax.lax.cond(carry["done"], idle, jax.checkpoint(work), carry, k)
 
     scanned: tuple[dict[str, Any], dict[str, Any]] = jax.lax.scan(segment, carry0, jnp.arange(K))
     final, segs = scanned
