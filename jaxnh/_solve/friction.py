@@ -729,8 +729,7 @@ class _Guard(eqx.Module):
         # at rest) fires only if it then goes negative, never by growing from 0.
         # in the default float dtype: diffrax pairs it with a Python 0.0 in a `lax.cond`
         # a member that is not integrating (a failed check, or a finished solve whose segment runs under
-        # vmap) gets a guard that never crosses zero (t ≤ t_end) and has a slope: a flat one would make
-        # the event's implicit derivative, computed for every member under vmap, divide by zero
+        # vmap) gets a guard that never crosses zero (t ≤ t_end), with a nonzero slope
         idle = t - args.t_end - 1.0
         return jnp.where(args.ok, -jnp.min(g), idle).astype(jnp.result_type(float))
 
@@ -906,9 +905,8 @@ def _run_traced(
         active = ~carry["done"]
         mode = carry["mode"]
         # a member that is not integrating (under vmap, `work` also runs for finished members) solves a
-        # unit interval ending at t_end with a zero field and a guard that never fires (`_Field`, `_Guard`):
-        # a zero-length solve there would have an interpolant over an empty step, whose derivatives are
-        # not finite, and reverse mode through the discarded branch would carry them into the gradient
+        # unit interval ending at t_end with a zero field and a guard that never fires (`_Field`, `_Guard`),
+        # so no step of its discarded segment has zero length
         ta = jnp.where(active, carry["t"], t_end - 1.0)
         q, qd = carry["q"], carry["qd"]
         perm = f.partition(q, qd, ta, params)
