@@ -805,8 +805,7 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     rows = constraint_row_checks(mech, q, qd, t, params, f.held)
     A = rows.A
     N, mus, muk = f.values(q, qd, t, params)
-    values_ok = jnp.all(jnp.isfinite(jnp.stack([N, mus, muk]))) & jnp.all(N >= 0) & jnp.all(muk >= 0)
-    values_ok = values_ok & jnp.all(mus >= muk)
+    values_ok = jnp.all(f.invalid(N, mus, muk) == 0) & jnp.all(N >= 0)  # (the run's own check, and N ≥ 0)
     split_ok = jnp.asarray(True)
     if f.kind == "appell":  # (the test of simulate's Appell form: `Appell.check`)
         split_ok = split_regular(mech, q, qd, t, params, f.s, f.m, f.independent, A, inertias)
