@@ -18,6 +18,15 @@ must stay on the plane) and the velocity of the wheel's material point at
 the contact (zero tangentially when it rolls without slipping: two
 nonholonomic constraints).
 
+Orientations may also be carried as unit quaternions e = (w, x, y, z)
+(scalar first, Hamilton product, the same body → inertial convention as R):
+`quat_multiply`, `rotation_from_quaternion` (exactly orthogonal for any
+nonzero e), `quaternion_from_rotation` (Shepperd's method, w ≥ 0),
+`quaternion_from_axis_angle`, the kinematics `quaternion_rate` (ė from ω in
+body or space axes) and its inverse `angular_velocity_from_quaternion`; and
+`rigid_body_acceleration_energy`, one body's rotational S from ω and ω̇ in
+body axes (∂S/∂ω̇ is the left side of Euler's equations).
+
 Inertia tensors are about the mass centre, in body axes, kg·m².
 """
 
@@ -46,6 +55,13 @@ __all__ = [
     "vee",
     "time_derivative",
     "angular_velocity",
+    "quat_multiply",
+    "rotation_from_quaternion",
+    "quaternion_from_rotation",
+    "quaternion_from_axis_angle",
+    "quaternion_rate",
+    "angular_velocity_from_quaternion",
+    "rigid_body_acceleration_energy",
 ]
 
 
@@ -117,6 +133,192 @@ def angular_velocity(R: jax.Array | np.ndarray, Rdot: jax.Array | np.ndarray, fr
     if frame == "space":
         return vee(mm(Rdot, R.T))
     raise ValueError(f"frame must be 'body' or 'space'; got {frame!r}")
+
+
+# --- unit quaternions -----------------------------------------------------------------
+#
+# A quaternion is e = (w, x, y, z), scalar first; products are Hamilton's (i² = j² = k² = ijk = −1).
+# The unit quaternion e describes the same rotation as R = rotation_from_quaternion(e), body axes →
+# inertial axes: a body-axes vector v has inertial components vec(e ⊗ (0, v) ⊗ e*). Each function
+# takes one quaternion (4,) (one 3-vector, one 3×3 matrix); `jax.vmap` maps it over a batch.
+
+
+def _as_float(x: ArrayInput, shape: tuple[int, ...], name: str) -> jax.Array:
+    """`x` as a floating array of the given shape (integers promoted to the default float)."""
+    x = jnp.asarray(x)
+    x = x.astype(jnp.result_type(x.dtype, float))
+    if x.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got shape {x.shape}")
+    return x
+
+
+def _check_frame(frame: str, name: str) -> None:
+    if frame not in ("body", "space"):
+        raise ValueError(f"{name}: frame must be 'body' or 'space'; got {frame!r}")
+
+
+def _conjugate(e: jax.Array) -> jax.Array:
+    return e * jnp.array([1, -1, -1, -1], dtype=e.dtype)
+
+
+def _pure(v: jax.Array) -> jax.Array:
+    """The pure quaternion (0, v) of a 3-vector."""
+    return jnp.concatenate([jnp.zeros((1,), dtype=v.dtype), v])
+
+
+def quat_multiply(a: ArrayInput, b: ArrayInput) -> jax.Array:
+    """The Hamilton product `a ⊗ b` of two quaternions (4,), scalar first.
+
+    `a ⊗ b = (a_w b_w − a_v·b_v, a_w b_v + b_w a_v + a_v × b_v)` with `a_v`, `b_v` the vector
+    parts. For unit quaternions it composes rotations as matrices do:
+    `R(a ⊗ b) = R(a) R(b)` (first b, then a). Not commutative; |a ⊗ b| = |a| |b|. The result has
+    the units of a times those of b (dimensionless for orientations).
+    """
+    a, b = _as_float(a, (4,), "quat_multiply a"), _as_float(b, (4,), "quat_multiply b")
+    aw, av, bw, bv = a[0], a[1:], b[0], b[1:]
+    w = aw * bw - jnp.sum(av * bv)
+    v = aw * bv + bw * av + jnp.cross(av, bv)
+    return jnp.concatenate([w[None], v])
+
+
+def rotation_from_quaternion(e: ArrayInput) -> jax.Array:
+    """The rotation matrix R (3, 3) of the orientation quaternion e = (w, x, y, z), body → inertial axes.
+
+    R is the homogeneous (quadratic) form divided by |e|²:
+
+        R = [[w²+x²−y²−z²,  2(xy − wz),   2(xz + wy) ],
+             [2(xy + wz),   w²−x²+y²−z²,  2(yz − wx) ],
+             [2(xz − wy),   2(yz + wx),   w²−x²−y²+z²]] / |e|²,
+
+    so R is orthogonal with determinant 1 (to rounding) for any nonzero e, not only for |e| = 1:
+    e and c·e (c ≠ 0) give the same R. An integrator that carries e, whose norm is 1 only to
+    rounding or to its tolerance, thus always gets a proper rotation, and the derivative of R along
+    e itself is zero. e = 0 is no rotation and gives NaN. e and −e give the same R.
+    A rotation by angle a about the unit axis n is e = (cos(a/2), sin(a/2) n)
+    (`quaternion_from_axis_angle`), and `R` then equals `rot_axis(n, a)`.
+    """
+    e = _as_float(e, (4,), "rotation_from_quaternion e")
+    w, x, y, z = e[0], e[1], e[2], e[3]
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R = jnp.stack(
+        [
+            jnp.stack([ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)]),
+            jnp.stack([2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)]),
+            jnp.stack([2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz]),
+        ]
+    )
+    return R / (ww + xx + yy + zz)
+
+
+def quaternion_from_rotation(R: ArrayInput) -> jax.Array:
+    """The unit quaternion e = (w, x, y, z) (4,) of a rotation matrix R (3, 3), body → inertial axes; w ≥ 0.
+
+    The inverse of `rotation_from_quaternion` on unit quaternions with w ≥ 0 (e and −e are the same
+    rotation; this returns the one with w ≥ 0). Shepperd's method: the symmetric 4×4 matrix
+
+        K = [[1 + t,     R₂₁ − R₁₂,       R₀₂ − R₂₀,       R₁₀ − R₀₁     ],
+             [R₂₁ − R₁₂, 1 + 2R₀₀ − t,    R₀₁ + R₁₀,       R₀₂ + R₂₀     ],
+             [R₀₂ − R₂₀, R₀₁ + R₁₀,       1 + 2R₁₁ − t,    R₁₂ + R₂₁     ],
+             [R₁₀ − R₀₁, R₀₂ + R₂₀,       R₁₂ + R₂₁,       1 + 2R₂₂ − t  ]],   t = trace R,
+
+    equals 4 e eᵀ for a rotation, so each column is e times 4 e_k. The column with the largest
+    diagonal entry 4 e_k² (at least 1, since the diagonal sums to 4) is used, normalised: no
+    square root of a small or negative number and no division by a small one, near a half turn
+    (w ≈ 0) as near the identity. The result has unit norm; for a matrix that is orthogonal only to
+    rounding it differs from the exact rotation's quaternion by a few rounding errors.
+
+    Differentiable (`jax.grad`, `jax.jvp`): the derivative is that of the chosen column,
+    normalised. Along rotations (R → R exp([δ]×)) every column gives the same e and the same
+    derivative, so the choice of column, a piecewise constant, changes neither; off the rotations
+    (a perturbation that makes R non-orthogonal) the derivatives of different columns differ. The
+    result is discontinuous only at half turns, where w passes through 0 and e jumps to −e (exactly
+    at w = 0 the component of e largest in magnitude is positive).
+    """
+    R = _as_float(R, (3, 3), "quaternion_from_rotation R")
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    s0, s1, s2 = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]  # 4w·(x, y, z)
+    p01, p02, p12 = R[0, 1] + R[1, 0], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1]  # 4xy, 4xz, 4yz
+    K = jnp.stack(
+        [
+            jnp.stack([1 + t, s0, s1, s2]),
+            jnp.stack([s0, 1 + 2 * R[0, 0] - t, p01, p02]),
+            jnp.stack([s1, p01, 1 + 2 * R[1, 1] - t, p12]),
+            jnp.stack([s2, p02, p12, 1 + 2 * R[2, 2] - t]),
+        ]
+    )
+    k = jnp.argmax(jnp.diagonal(K))
+    column = K[:, k]
+    e = column / jnp.sqrt(jnp.sum(column * column))
+    return jnp.where(e[0] < 0, -e, e)
+
+
+def quaternion_from_axis_angle(axis: ArrayInput, angle: ArrayLike) -> jax.Array:
+    """The unit quaternion (4,) of a rotation by `angle` (rad) about `axis`: (cos(a/2), sin(a/2) axis).
+
+    `axis` (3,) is a unit vector in the axes the rotation is expressed in; it is not normalised
+    here (as in `rot_axis`, whose matrix this quaternion's `rotation_from_quaternion` equals).
+    Right-handed: a positive angle turns counter-clockwise seen from the tip of `axis`. Angles a
+    and a + 2π give −e and e, the same rotation; w ≥ 0 only for |a| ≤ π.
+    """
+    angle = jnp.asarray(angle)
+    axis = jnp.asarray(axis)
+    dtype = jnp.result_type(axis, angle, float)
+    axis = _as_float(axis.astype(dtype), (3,), "quaternion_from_axis_angle axis")
+    half = 0.5 * angle.astype(dtype)
+    if half.shape != ():
+        raise ValueError(f"quaternion_from_axis_angle angle: expected a scalar, got shape {half.shape}")
+    return jnp.concatenate([jnp.cos(half)[None], jnp.sin(half) * axis])
+
+
+def quaternion_rate(e: ArrayInput, omega: ArrayInput, frame: str = "body") -> jax.Array:
+    """The rate ė (4,), 1/s, of the orientation quaternion e (4,) turning at angular velocity ω (3,), rad/s.
+
+    `frame="body"`: ω in body axes, `ė = ½ e ⊗ (0, ω)`; `frame="space"`: ω in inertial axes,
+    `ė = ½ (0, ω) ⊗ e`. Then `d/dt rotation_from_quaternion(e) = R [ω]×` (body) or `[ω]× R`
+    (space). The rate is orthogonal to e (`e·ė = 0`), so |e| is constant along the exact motion;
+    a numerical integrator lets it drift by its error, which `rotation_from_quaternion` ignores.
+    For a non-unit e the rate is |e| times that of e/|e|. Inverse:
+    `angular_velocity_from_quaternion`.
+    """
+    _check_frame(frame, "quaternion_rate")
+    e = _as_float(e, (4,), "quaternion_rate e")
+    w = _pure(_as_float(omega, (3,), "quaternion_rate omega"))
+    return 0.5 * (quat_multiply(e, w) if frame == "body" else quat_multiply(w, e))
+
+
+def angular_velocity_from_quaternion(e: ArrayInput, edot: ArrayInput, frame: str = "body") -> jax.Array:
+    """The angular velocity ω (3,), rad/s, of an orientation quaternion e (4,) changing at ė (4,), 1/s.
+
+    `frame="body"`: body axes, `ω = 2 vec(e* ⊗ ė) / |e|²`; `frame="space"`: inertial axes,
+    `ω = 2 vec(ė ⊗ e*) / |e|²` (e* the conjugate, vec the vector part). The inverse of
+    `quaternion_rate` for any nonzero e, and the angular velocity of
+    `rotation_from_quaternion(e)`: a component of ė along e (a change of |e|, which does not turn
+    R) lands in the scalar part `e·ė` and is ignored. Compare `angular_velocity(R, Ṙ)`.
+    """
+    _check_frame(frame, "angular_velocity_from_quaternion")
+    e = _as_float(e, (4,), "angular_velocity_from_quaternion e")
+    edot = _as_float(edot, (4,), "angular_velocity_from_quaternion edot")
+    ec = _conjugate(e)
+    p = quat_multiply(ec, edot) if frame == "body" else quat_multiply(edot, ec)
+    return 2 * p[1:] / jnp.sum(e * e)
+
+
+def rigid_body_acceleration_energy(inertia: ArrayInput, omega: ArrayInput, omega_dot: ArrayInput) -> jax.Array:
+    """The Gibbs–Appell acceleration energy of a rigid body's rotation, J/s² (scalar).
+
+    `S = ½ ω̇ · I ω̇ + ω̇ · (ω × I ω)`, with `inertia` I (3, 3) the inertia tensor about the mass
+    centre in body axes (kg·m²), `omega` ω (3,) the angular velocity in body axes (rad/s) and
+    `omega_dot` ω̇ (3,) its rate (rad/s², the derivative of the body-axes components). The terms
+    of the full `½ ∫ |a|² dm` that are free of ω̇ are left out (they do not enter Appell's
+    equations). `∂S/∂ω̇ = I ω̇ + ω × I ω` is the left side of Euler's equations, equal to the
+    torque about the mass centre in body axes, N·m. The translation's `½ m |r̈|²` is separate
+    (`RigidBodies.acceleration_energy` sums both over its bodies).
+    """
+    I = _as_float(inertia, (3, 3), "rigid_body_acceleration_energy inertia")
+    w = _as_float(omega, (3,), "rigid_body_acceleration_energy omega")
+    dw = _as_float(omega_dot, (3,), "rigid_body_acceleration_energy omega_dot")
+    return 0.5 * mm(dw, mm(I, dw)) + mm(dw, jnp.cross(w, mm(I, w)))
 
 
 def _as_vec3(x, name):
@@ -222,7 +424,7 @@ class RigidBodies(eqx.Module):
         acc = self.accelerations(q, qd, qdd, t, p)
         S = 0.0
         for (_, w, a, dw), (m, I) in zip(acc, self._inertias(p, len(acc))):
-            S = S + 0.5 * m * mm(a, a) + 0.5 * mm(dw, mm(I, dw)) + mm(dw, jnp.cross(w, mm(I, w)))
+            S = S + 0.5 * m * mm(a, a) + rigid_body_acceleration_energy(I, w, dw)
         return S
 
     def potential(self, q: ArrayLike, t: ArrayLike, p: Any) -> jax.Array | float:
