@@ -255,6 +255,12 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "Raise max_steps, or raise dtmax or give fewer step_ts. sol.stats['stopped_at'] is the time the "
         "solve stopped."
     )
+    quaternion_not_unit = (
+        "A group of q0 named in the mechanism's `quaternions` is not a unit quaternion: its norm differs "
+        "from 1 by more than √eps. A rotation is a unit quaternion (w, x, y, z); divide the group by its "
+        "norm (e.g. q0.at[3:7].set(e / jnp.linalg.norm(e))), or build it with "
+        "jaxnh.rigid.quaternion_from_axis_angle."
+    )
 
 
 # `help(jaxnh.STATUS)` lists every item (diffrax's and jaxnh's) with its message: equinox writes that
@@ -302,6 +308,7 @@ INPUT_FAILURES = (
     "constraints_nearly_dependent",
     "friction_values_invalid",
     "acceleration_energy_mismatch",
+    "quaternion_not_unit",
 )
 
 

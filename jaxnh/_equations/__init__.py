@@ -87,7 +87,7 @@ def formulation(
         raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
     form = as_formulation(method, independent)
     m = mech.check_shapes(q, qd, t, params)
-    return form.bind(mech, jnp.shape(q)[0], m)
+    return form.bind(mech, jnp.shape(qd)[0], m, jnp.shape(q)[0])
 
 
 def accelerations(

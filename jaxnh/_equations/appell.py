@@ -60,7 +60,7 @@ from jaxnh._equations.split import (
     SWITCH_BELOW,
     VelocitySplit,
 )
-from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.step_maps import normalize_quaternions, StepMaps
 from jaxnh._equations.terms import projected_terms
 
 
@@ -80,7 +80,7 @@ class Appell(Formulation):
 
     name = "appell"
 
-    def bind(self, mech: eqx.Module, s: int, m: int) -> Appell:
+    def bind(self, mech: eqx.Module, s: int, m: int, nq: Optional[int] = None) -> Appell:
         if m >= s:
             raise ValueError(
                 f"method={self.name!r}: the mechanism has m={m} constraints for s={s} coordinates: no independent "
@@ -88,7 +88,7 @@ class Appell(Formulation):
                 "cannot use either); use method='lagrange'"
             )
         ind = resolve_independent(mech, self.independent, s, m)  # pyright: ignore[reportArgumentType]
-        return dataclasses.replace(self, mech=mech, s=s, m=m, independent=ind)
+        return dataclasses.replace(self, mech=mech, s=s, m=m, nq=s if nq is None else int(nq), independent=ind)
 
     @property
     def split(self) -> VelocitySplit:
@@ -100,15 +100,15 @@ class Appell(Formulation):
         return self.independent is None and self.m > 0
 
     def parts(self, y: jax.Array) -> tuple[jax.Array, jax.Array, Optional[jax.Array]]:
-        """(q (s,), v (k,), partition code (m,) or None) of a state y = [q, v, dependent indices]."""
-        s, k = self.s, self.s - self.m
-        return y[:s], y[s : s + k], (y[s + k :] if self.traced else None)
+        """(q (nq,), v (k,), partition code (m,) or None) of a state y = [q, v, dependent indices]."""
+        n, k = self.nq, self.s - self.m
+        return y[:n], y[n : n + k], (y[n + k :] if self.traced else None)
 
     def partition(self, y: Optional[jax.Array]) -> tuple | jax.Array:
         """The partition in use for the state y."""
         if not self.traced:
             return self.independent if self.independent is not None else tuple(range(self.s))
-        return partition_from_dependent(jnp.round(y[self.s + self.s - self.m :]).astype(jnp.int32), self.s)  # pyright: ignore[reportOptionalSubscript]
+        return partition_from_dependent(jnp.round(y[self.nq + self.s - self.m :]).astype(jnp.int32), self.s)  # pyright: ignore[reportOptionalSubscript]
 
     def state(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         if not self.traced:
@@ -119,10 +119,11 @@ class Appell(Formulation):
 
     def unpack(self, y: jax.Array, t: jax.typing.ArrayLike, params: object) -> tuple[jax.Array, jax.Array]:
         q, v, _ = self.parts(y)
+        q = normalize_quaternions(q, self.bound_mech.quaternions)  # (a report between steps: interpolated)
         return q, self.split.velocities(q, v, t, params, self.partition(y))
 
     def error_mask(self) -> Optional[tuple[float, ...]]:
-        n = self.s + self.s - self.m
+        n = self.nq + self.s - self.m
         return (1.0,) * n + (0.0,) * self.m if self.traced else None
 
     def _independent_accelerations(self, q, v, t, params, part, start=None):
@@ -158,7 +159,8 @@ class Appell(Formulation):
     def vector_field(self, t: jax.typing.ArrayLike, y: jax.Array, params: object) -> jax.Array:
         q, v, code = self.parts(y)
         qd, _, vd = self._independent_accelerations(q, v, t, params, self.partition(y))
-        return jnp.concatenate([qd, vd] + ([jnp.zeros_like(code)] if code is not None else [])).astype(y.dtype)
+        rate = self.rate(q, qd, t, params)
+        return jnp.concatenate([rate, vd] + ([jnp.zeros_like(code)] if code is not None else [])).astype(y.dtype)
 
     def step_maps(self) -> Optional[StepMaps]:
         if self.m == 0:

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 
 from jaxnh._base.linalg import mm, solve_psd_min_norm
 from jaxnh._base.status import STATUS
-from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.step_maps import StepMaps, with_quaternions
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
 from jaxnh._model.mechanism import Mechanism
 
@@ -49,13 +49,19 @@ class Formulation(eqx.Module):
     mech: Optional[Mechanism] = None
     s: int = eqx.field(static=True, default=0)
     m: int = eqx.field(static=True, default=0)
+    nq: int = eqx.field(static=True, default=0)
 
     has_multipliers = True
     name = "formulation"
 
-    def bind(self, mech: Mechanism, s: int, m: int) -> Formulation:
-        """This formulation for `mech` with s coordinates and m constraints."""
-        return dataclasses.replace(self, mech=mech, s=s, m=m)
+    def bind(self, mech: Mechanism, s: int, m: int, nq: Optional[int] = None) -> Formulation:
+        """This formulation for `mech` with s velocities (speeds), m constraints and nq coordinates
+        (default s: a mechanism without `kinematics`, whose velocities are q̇)."""
+        return dataclasses.replace(self, mech=mech, s=s, m=m, nq=s if nq is None else int(nq))
+
+    def rate(self, q: jax.Array, u: jax.Array, t: jax.typing.ArrayLike, params: Any) -> jax.Array:
+        """dq/dt (nq,) from the velocities (speeds) u: the mechanism's `kinematics`, or u itself."""
+        return self.bound_mech.rate(q, u, t, params)
 
     @property
     def bound_mech(self) -> Mechanism:
@@ -92,6 +98,12 @@ class Formulation(eqx.Module):
     def step_maps(self) -> Optional[StepMaps]:
         """A `jaxnh.StepMaps` applied around every step, or None."""
         return None
+
+    def solve_maps(self) -> Optional[StepMaps]:
+        """The maps a solve applies around every step: `step_maps`, with the mechanism's unit
+        quaternions rescaled to unit norm after each step (`UnitQuaternions`)."""
+        mech = self.mech
+        return with_quaternions(self.step_maps(), mech.quaternions if mech is not None else ())
 
     def check(
         self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: Any

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jaxnh._base.linalg import cholesky, mm, solve_lower, solve_psd_min_norm, solve_upper_t
 from jaxnh._equations.base import Formulation
 from jaxnh._equations.consistent import project_velocities
-from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.step_maps import normalize_quaternions, StepMaps
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms
 
 
@@ -59,7 +59,8 @@ class Lagrange(Formulation):
         return jnp.concatenate([q, qd])
 
     def unpack(self, y: jnp.ndarray, t: Any, params: Any) -> tuple[jnp.ndarray, jnp.ndarray]:
-        q, qd = y[: self.s], y[self.s :]
+        q, qd = y[: self.nq], y[self.nq :]
+        q = normalize_quaternions(q, self.bound_mech.quaternions)  # (a report between steps: interpolated)
         if self.projection and self.m:
             # reports between steps come from the dense output, which is not projected
             return q, project_velocities(self.bound_mech, q, qd, t, params)
@@ -84,9 +85,9 @@ class Lagrange(Formulation):
         return qdd, (lam if multipliers else None)
 
     def vector_field(self, t: Any, y: jnp.ndarray, params: Any) -> jnp.ndarray:
-        q, qd = y[: self.s], y[self.s :]
+        q, qd = y[: self.nq], y[self.nq :]
         qdd, _ = self.accelerations(q, qd, t, params)
-        return jnp.concatenate([qd, qdd]).astype(y.dtype)
+        return jnp.concatenate([self.rate(q, qd, t, params), qdd]).astype(y.dtype)
 
     def step_maps(self) -> StepMaps | None:
         return _Projection() if self.projection and self.m else None
@@ -97,7 +98,7 @@ class _Projection(StepMaps):
     The solve's args are `(formulation, params, ok)`."""
 
     def post(self, t0, y0, t1, y1, args):
-        s = args[0].s
+        s = args[0].nq
         q, qd = y1[:s], y1[s:]
         qd_new = project_velocities(args[0].mech, q, qd, t1, args[1])
         y_new = jnp.concatenate([q, qd_new])

@@ -222,7 +222,7 @@ def partition_quality(mech: Mechanism, q, qd, t, params, part: Partition, k: int
     singular block (both on the row-normalised, mass-scaled A of
     `mass_scaled_matrix`). `A`, `inertias`: as for `mass_scaled_matrix`.
     """
-    s = q.shape[0]
+    s = jnp.shape(qd)[0]
     A = mass_scaled_matrix(mech, q, qd, t, params, A, inertias)
     if A.shape[0] == 0:
         one = jnp.ones((), q.dtype)
@@ -379,7 +379,9 @@ class VelocitySplit(eqx.Module):
         qd = self.velocities(q, v, t, params, part, start)
         B = jax.jacfwd(self.velocities, argnums=1)(q, v, t, params, part, start)
         _, beta = jax.jvp(
-            lambda q_, t_: self.velocities(q_, v, t_, params, part, start), (q, t), (qd, jnp.ones_like(t))
+            lambda q_, t_: self.velocities(q_, v, t_, params, part, start),
+            (q, t),
+            (self.mech.rate(q, qd, t, params), jnp.ones_like(t)),
         )
         return qd, B, beta
 
@@ -410,7 +412,8 @@ class VelocitySplit(eqx.Module):
         X = solve_square(AD, -jnp.concatenate([(jnp.sum(AI * v, axis=1) + a)[:, None], AI], axis=1))
         qd = place(v, X[:, 0], part)
         B = place(jnp.eye(k, dtype=q.dtype), X[:, 1:], part)
-        _, b = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (qd, jnp.ones_like(t)))
+        rate = mech.rate(q, qd, t, params)
+        _, b = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (rate, jnp.ones_like(t)))
         return qd, B, place(jnp.zeros_like(v), solve_square(AD, -b), part)
 
 
@@ -434,7 +437,7 @@ def choose_independent(
     the compiled program, also under `jit`/`vmap`/`grad`.
     """
     q = jnp.asarray(q)
-    s = q.shape[0]
+    s = jnp.asarray(qd).shape[0]
     m = mech.check_shapes(q, qd, t, params)
     perm, vol = _best_partition_jit(mech, q, jnp.asarray(qd, q.dtype), t, params, s, m)
     if m and not float(vol) > 1e3 * float(jnp.finfo(q.dtype).eps):

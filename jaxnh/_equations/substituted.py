@@ -18,6 +18,8 @@ for anything else. The partition of the velocities is handled as for
 
 from __future__ import annotations
 
+from typing import Optional
+
 import jax
 import jax.numpy as jnp
 
@@ -30,6 +32,14 @@ class Substituted(Appell):
 
     has_multipliers = False
     name = "substituted"
+
+    def bind(self, mech, s: int, m: int, nq: Optional[int] = None) -> "Substituted":
+        if getattr(mech, "kinematics", None) is not None:
+            raise ValueError(
+                "method='substituted': the substituted form is Lagrange's second kind in q̇ and has no counterpart "
+                "in speeds (a mechanism with `kinematics=`); use method='lagrange' or method='appell'"
+            )
+        return super().bind(mech, s, m, nq)  # pyright: ignore[reportReturnType]
 
     def _independent_accelerations(self, q, v, t, params, part, start=None):
         mech, split = self.bound_mech, self.split

@@ -18,21 +18,23 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxnh._base.linalg import mm
+from jaxnh._base.linalg import mm, solve_spd
 
 
-def _along(f, q, qd, t, dqd):
+def _along(f, q, qd, t, dqd, rate=None):
     """`f(q, qd, t)` and its derivatives along the k velocity directions `dqd` (s, k) and along the
     motion (q, t) → (q + qd dt, t + dt), in one forward pass over one evaluation of f.
 
     Returns (f, (k,) + f's shape, f's shape): f's value, its derivatives ∂f/∂qd · dqd_j, and
-    (∂f/∂q) qd + ∂f/∂t. The k + 1 tangents are batched (`vmap` of `jvp`): f and, for a gradient f,
-    its reverse pass, are traced and evaluated once, not once per quantity."""
+    (∂f/∂q) q̇ + ∂f/∂t with q̇ = `rate` (default qd itself). The k + 1 tangents are batched (`vmap` of
+    `jvp`): f and, for a gradient f, its reverse pass, are traced and evaluated once, not once per
+    quantity."""
     k = dqd.shape[1]
     t = jnp.asarray(t)
     if not jnp.issubdtype(t.dtype, jnp.inexact):  # (an integer time has no tangent)
         t = t.astype(q.dtype)
-    tq = jnp.concatenate([jnp.zeros((k, q.shape[0]), q.dtype), qd[None, :].astype(q.dtype)])
+    motion = qd if rate is None else rate
+    tq = jnp.concatenate([jnp.zeros((k, q.shape[0]), q.dtype), motion[None, :].astype(q.dtype)])
     tqd = jnp.concatenate([dqd.T.astype(qd.dtype), jnp.zeros((1, qd.shape[0]), qd.dtype)])
     tt = jnp.concatenate([jnp.zeros((k,), t.dtype), jnp.ones((1,), t.dtype)])
 
@@ -50,9 +52,52 @@ def _gradients(mech, params):
 
 def mass_and_velocity_terms(mech, q, qd, t, params):
     """Mass matrix M (s, s) and velocity terms h (s,) of the Lagrange expression, from one
-    forward pass (s + 1 tangents) over one reverse pass of T."""
+    forward pass (s + 1 tangents) over one reverse pass of T.
+
+    With speeds u (`mech.kinematics`, q̇ = K(q, t) u + k(q, t)) these are the terms of the
+    Boltzmann–Hamel equations, `M u̇ + h = Q + Aᵀ λ` with `M = ∂²T/∂u²` and
+    `h = (∂p/∂q) q̇ + ∂p/∂t − Kᵀ ∂T/∂q + Γᵀ p`, p = ∂T/∂u (`speed_terms`)."""
+    if mech.kinematics is not None:
+        return speed_terms(mech, q, qd, t, params)
     (dTdq, _), (_, Mt), (_, dp) = _along(_gradients(mech, params), q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype))
     return Mt.T, dp - dTdq
+
+
+def speed_terms(mech, q, u, t, params):
+    """M (n_u, n_u) and h (n_u,) of the equations of motion in the speeds u (Boltzmann–Hamel).
+
+    With q̇ = r(q, u, t) = K(q, t) u + k(q, t) and T(q, u, t), the principle of virtual work
+    along the admissible displacements δq = K δπ gives, for each speed j,
+
+        d/dt ∂T/∂u_j − K_jᵀ ∂T/∂q + p · γ_j = Q_j,     K γ_j = (∂r/∂q) K_j − dK_j/dt,
+
+    where K_j is the column of K, dK_j/dt = (∂K_j/∂q) q̇ + ∂K_j/∂t its rate along the motion,
+    and γ_j carries the transpositional (Hamel) terms: the commutators of the fields K_j, and of
+    each K_j with the motion's own drift. γ_j is well defined because the right-hand side is
+    tangent to the configuration manifold whenever the fields are (for a unit quaternion, the
+    sphere), and K has full column rank: it is taken by least squares. Everything is by automatic
+    differentiation of the user's T and `kinematics`; no term is written by hand. For a rigid body
+    with body angular velocity ω as speeds, T = ½ ωᵀIω, this gives Euler's I ω̇ + ω × Iω.
+    """
+    dtype = jnp.result_type(q, u)
+    t = jnp.asarray(t)
+    if not jnp.issubdtype(t.dtype, jnp.inexact):
+        t = t.astype(q.dtype)
+
+    def rate(q_, u_, t_):
+        return mech.rate(q_, u_, t_, params)
+
+    r = rate(q, u, t)
+    (dTdq, p), (_, Mt), (_, dp) = _along(_gradients(mech, params), q, u, t, jnp.eye(u.shape[0], dtype=u.dtype), r)
+
+    def kmat(q_, t_):
+        return jax.jacfwd(rate, argnums=1)(q_, u, t_)
+
+    K, Kdot = jax.jvp(kmat, (q, t), (r.astype(q.dtype), jnp.ones_like(t)))
+    JK = jax.vmap(lambda d: jax.jvp(lambda q_: rate(q_, u, t), (q,), (d,))[1], in_axes=1, out_axes=1)(K)
+    gamma = solve_spd(mm(K.T, K), mm(K.T, JK - Kdot))
+    h = dp - mm(K.T, dTdq.astype(dtype)) + mm(gamma.T, p)
+    return Mt.T, h
 
 
 def projected_terms(mech, q, qd, t, params, B, beta):
@@ -65,6 +110,10 @@ def projected_terms(mech, q, qd, t, params, B, beta):
     flattened Appell field the k + 2 tangents of both gradients made a step 1.5× slower.)
     """
     k = B.shape[1]
+    if mech.kinematics is not None:  # the speeds' terms carry Hamel's: from the full M and h
+        M, h = speed_terms(mech, q, qd, t, params)
+        MB = mm(M, B)
+        return mm(B.T, MB), mm(B.T, mm(M, beta) + h)
 
     def momentum(q_, qd_, t_):
         return jax.grad(mech.kinetic, argnums=1)(q_, qd_, t_, params)
@@ -85,5 +134,6 @@ def constraint_terms(mech, q, qd, t, params):
     def c(q_, qd_, t_):
         return mech.constraint(q_, qd_, t_, params)
 
-    _, At, b = _along(c, q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype))
+    rate = mech.rate(q, qd, t, params) if mech.kinematics is not None else None
+    _, At, b = _along(c, q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype), rate)
     return At.T, b

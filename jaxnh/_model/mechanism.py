@@ -37,6 +37,29 @@ def _as_indices(x):
     return None if x is None else tuple(int(i) if isinstance(i, np.integer) else i for i in x)
 
 
+def _as_groups(x) -> tuple:
+    """`quaternions` as a tuple of 4-tuples of distinct coordinate indices (a ValueError otherwise)."""
+    if x is None:
+        return ()
+    try:
+        groups = tuple(tuple(g) for g in x)
+    except TypeError:
+        raise TypeError(
+            f"Mechanism: `quaternions` must be groups of four coordinate indices, e.g. ((3, 4, 5, 6),); got {x!r}"
+        ) from None
+    flat = [i for g in groups for i in g]
+    if any(len(g) != 4 for g in groups) or not all(
+        isinstance(i, (int, np.integer)) and not isinstance(i, bool) and i >= 0 for i in flat
+    ):
+        raise ValueError(
+            f"Mechanism: `quaternions` must be groups of four coordinate indices (w, x, y, z), e.g. "
+            f"((3, 4, 5, 6),); got {x!r}"
+        )
+    if len(set(flat)) != len(flat):
+        raise ValueError(f"Mechanism: `quaternions` groups must not share coordinates; got {x!r}")
+    return tuple(tuple(int(i) for i in g) for g in groups)
+
+
 __all__ = ["Mechanism"]
 
 
@@ -112,6 +135,23 @@ class Mechanism(eqx.Module):
             (quadratic convergence: 8 reach rounding from a reasonable start).
         newton_tol: largest accepted |g| after them (default √eps); a miss
             makes the state NaN, which `simulate` reports as a failure.
+        kinematics: `qdot(q, u, t, params) -> (n_q,)`, the rates of the
+            coordinates from *speeds* (quasi-velocities) u, affine in u. With
+            it, every user function takes the speeds in place of the
+            velocities: `T(q, u, t, params)`, `c(q, u, t, params)` (affine in
+            u), `Q(q, u, t, params)` (generalized forces conjugate to u: their
+            power is `Q · u`), `S(q, u, u̇, t, params)`; u may be shorter than
+            q (a unit quaternion has four coordinates and three angular-velocity
+            speeds). The equations of motion in the speeds (Boltzmann–Hamel's
+            for Lagrange's form, Appell's in the quasi-accelerations) are
+            derived from T and this map; see the "Bodies in space" page.
+            Default None: u is q̇.
+        quaternions: groups of coordinates that are unit quaternions (w, x, y,
+            z), e.g. `((3, 4, 5, 6),)`. The solve keeps each at unit norm (it
+            rescales them after every step, and the step-size control does not
+            count the norm direction) and `simulate` refuses a q0 whose groups
+            are not of unit norm to √eps. Needs `kinematics` whose quaternion
+            rates are tangent to the unit sphere (`jaxnh.rigid.quaternion_rate`).
     """
 
     kinetic: Callable = eqx.field(static=True)
@@ -128,6 +168,8 @@ class Mechanism(eqx.Module):
     guess: Optional[Callable] = eqx.field(static=True, default=None)
     newton_iterations: int = eqx.field(static=True, default=8)
     newton_tol: Optional[float] = eqx.field(static=True, default=None)
+    kinematics: Optional[Callable] = eqx.field(static=True, default=None)
+    quaternions: tuple = eqx.field(static=True, default=(), converter=_as_groups)
 
     def __check_init__(self):
         if not callable(self.kinetic):
@@ -156,6 +198,25 @@ class Mechanism(eqx.Module):
             )
         if self.guess is not None and not callable(self.guess):
             raise TypeError(f"Mechanism: `guess` must be a function guess(q_I, t, params), got {self.guess!r}")
+        if self.kinematics is not None and not callable(self.kinematics):
+            raise TypeError(
+                f"Mechanism: `kinematics` must be a function qdot(q, u, t, params) or None, got {self.kinematics!r}"
+            )
+        if self.quaternions and self.kinematics is None:
+            raise ValueError(
+                "Mechanism: `quaternions` name coordinates whose rates come from angular-velocity speeds: give "
+                "`kinematics=` too (e.g. with jaxnh.rigid.quaternion_rate), and write T in those speeds"
+            )
+        if self.kinematics is not None and self.contacts:
+            raise ValueError(
+                "Mechanism: friction `contacts` with `kinematics` (speeds) are not supported yet; write the "
+                "mechanism in q̇ (without `kinematics`) to use contacts"
+            )
+        if self.kinematics is not None and self.dependent is not None:
+            raise ValueError(
+                "Mechanism: `dependent` coordinates with `kinematics` (speeds) are not supported; leave out "
+                "`dependent` (the holonomic constraints are then imposed as ġ = 0)"
+            )
         if not isinstance(self.newton_iterations, int) or self.newton_iterations < 1:
             raise ValueError(f"Mechanism: `newton_iterations` must be an integer ≥ 1; got {self.newton_iterations!r}")
 
@@ -164,6 +225,27 @@ class Mechanism(eqx.Module):
     def n_constraints(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> int:
         """Number m of velocity constraints (static): nonholonomic plus differentiated holonomic ones."""
         return eqx.filter_eval_shape(lambda *a: self.constraint(*a), q, qd, t, params).shape[0]
+
+    @property
+    def has_speeds(self) -> bool:
+        """Whether the velocities are speeds u with their own `kinematics` (else u is q̇)."""
+        return self.kinematics is not None
+
+    def rate(self, q: jax.Array, u: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
+        """dq/dt (n_q,) from the speeds u: `kinematics(q, u, t, params)`, or u itself without it."""
+        if self.kinematics is None:
+            return u
+        return jnp.asarray(self.kinematics(q, u, t, params)).astype(jnp.result_type(q, u))
+
+    def speeds_transpose(
+        self, q: jax.Array, u: jax.Array, t: jax.typing.ArrayLike, params: object, f: jax.Array
+    ) -> jax.Array:
+        """`Kᵀ f` (n_u,), with K = ∂q̇/∂u (n_q, n_u): a covector f on the coordinates (such as ∂V/∂q) as
+        one on the speeds (its power along u). f itself without `kinematics`."""
+        if self.kinematics is None:
+            return f
+        _, pull = jax.vjp(lambda x: self.rate(q, x, t, params), u)
+        return pull(f.astype(jnp.result_type(q, u)))[0]
 
     def constraint(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
         """Velocity constraints `[c(q, qd, t), ġ(q, qd, t)]`, shape (m,); empty without constraints."""
@@ -175,7 +257,7 @@ class Mechanism(eqx.Module):
             _, gd = jax.jvp(
                 lambda x, t_: jnp.asarray(holonomic(x, t_, params)),
                 (q, jnp.asarray(t, q.dtype)),
-                (jnp.asarray(qd, q.dtype), jnp.ones((), q.dtype)),
+                (jnp.asarray(self.rate(q, qd, t, params), q.dtype), jnp.ones((), q.dtype)),
             )
             parts.append(gd.astype(jnp.result_type(qd)))
         if not parts:
@@ -278,7 +360,7 @@ class Mechanism(eqx.Module):
             Q = Q + jnp.asarray(self.forces(q, qd, t, params), dtype=qd.dtype)
         potential = self.potential
         if potential is not None:
-            Q = Q - jax.grad(lambda x: potential(x, t, params))(q)
+            Q = Q - self.speeds_transpose(q, qd, t, params, jax.grad(lambda x: potential(x, t, params))(q))
         return Q
 
     def energy(self, q: jax.Array, qd: jax.Array, t: jax.typing.ArrayLike, params: object) -> jax.Array:
@@ -340,6 +422,8 @@ class Mechanism(eqx.Module):
                     f"got shape {x.shape}" + (batch if x.ndim > 1 else "")
                 )
         nq, nqd = q.shape[0], qd.shape[0]
+        if self.kinematics is not None:  # speeds: u may be shorter than q; `kinematics` must map it to q̇
+            return
         if self.names is not None:
             s = len(self.names)
             source = f"names={tuple(self.names)!r}"
@@ -403,7 +487,7 @@ class Mechanism(eqx.Module):
 
     def _check_outputs(self, q, qd, t, params) -> int:
         """The shapes the user functions return at q, qd of shape (s,); return m."""
-        s = q.shape[0]
+        s = qd.shape[0]  # (the number of velocities: the speeds, with `kinematics`)
 
         def out(fn, name, *args):
             try:
@@ -416,6 +500,8 @@ class Mechanism(eqx.Module):
                     err = ValueError(msg)
                 raise err from e
 
+        if self.kinematics is not None:
+            self._check_kinematics(q, qd, t, params, out)
         T = out(self.kinetic, "kinetic", q, qd, t, params)
         if getattr(T, "shape", None) != ():
             raise ValueError(
@@ -481,6 +567,22 @@ class Mechanism(eqx.Module):
         if self.independent is not None:
             check_independent(self.independent, s, m)
         return m
+
+    def _check_kinematics(self, q, u, t, params, out) -> None:
+        """`kinematics` returns q̇ of q's shape, and the quaternion groups index q (at trace time)."""
+        nq, nu = q.shape[0], u.shape[0]
+        r = out(self.kinematics, "kinematics", q, u, t, params)
+        if getattr(r, "shape", None) != (nq,):
+            raise ValueError(
+                f"Mechanism `kinematics` must return dq/dt of q's shape ({nq},); got "
+                + (str(tuple(r.shape)) if _is_array(r) else _returned(r))
+                + f". qdot(q, u, t, params) maps the {nu} speeds u to the rates of the {nq} coordinates"
+            )
+        for g in self.quaternions:
+            if max(g) >= nq:
+                raise ValueError(
+                    f"Mechanism: quaternions={self.quaternions!r} name coordinate {max(g)}, but q has {nq} coordinates"
+                )
 
     def check_finite(
         self,

@@ -148,6 +148,13 @@ def initial_checks(form, q, qd, t, params):
         agrees = acceleration_energy_agrees(mech, q, qd, t, params)
         status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
         ok = ok & agrees
+    if mech.quaternions:  # each named group a unit quaternion to √eps (the solve then keeps it at 1)
+        eps = jnp.finfo(q.dtype).eps
+        unit = jnp.all(
+            jnp.stack([jnp.abs(jnp.linalg.norm(q[jnp.asarray(g)]) - 1) <= jnp.sqrt(eps) for g in mech.quaternions])
+        )
+        status = STATUS.where(ok & ~unit, STATUS.quaternion_not_unit, status)
+        ok = ok & unit
     if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
         on = holonomic_consistent(mech, q, t, params)
         status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)
@@ -238,7 +245,7 @@ def non_finite_function(form, y, t, params, span, t1, user: Optional[Callable] =
     steps = jnp.minimum(jnp.asarray(PROBE_STEPS, dtype) * span, jnp.maximum(t1 - t, 0.0))
 
     def codes(h):
-        qp, qdp, tp = q + h * qd, qd, t + h
+        qp, qdp, tp = q + h * form.rate(q, qd, t, params), qd, t + h
         if user is None:
             mech, qp_, qdp_, p = form.mech, qp, qdp, params
         else:

@@ -61,7 +61,7 @@ class ODE(eqx.Module):
 
     def solver(self, solver: diffrax.AbstractAdaptiveSolver[Any]) -> diffrax.AbstractAdaptiveSolver[Any]:
         """`solver` with the formulation's step maps applied (or unchanged if it has none)."""
-        maps = self.form.step_maps()
+        maps = self.form.solve_maps()
         return solver if maps is None else MappedSolver(solver, maps)
 
     def error_norm(self, err: PyTree) -> jax.Array:

@@ -32,6 +32,7 @@ from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
 from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations import Appell, as_formulation, Formulation, Lagrange
 from jaxnh._equations.scalarize import scalarized
+from jaxnh._equations.step_maps import normalize_quaternions
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import declared_breakpoints, Profile
 from jaxnh._solve.diagnose import (
@@ -704,7 +705,7 @@ def _run_traced(
     """The compiled part of `simulate`."""
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
-    s = q0.shape[0]
+    s = qd0.shape[0]  # velocities (speeds, with `kinematics`)
     full = full_form = expand = None
     inputs = (q0, qd0)
     run = params  # the params of the formulation's functions
@@ -718,7 +719,7 @@ def _run_traced(
         s = q0.shape[0]
     if isinstance(form, Lagrange) and isinstance(form.baumgarte, str):
         form = Lagrange(baumgarte=1.0 / jnp.median(jnp.diff(ts)), projection=form.projection)
-    form = form.bind(mech, s, m)
+    form = form.bind(mech, s, m, q0.shape[0])
     finite = all_finite((inputs, ts, params, form))
     increasing = jnp.all(jnp.diff(ts) > 0)
     q0r = jnp.where(finite, q0, 0.0)
@@ -736,6 +737,8 @@ def _run_traced(
         check_status = STATUS.where(full_ok & branch, check_status, full_status)  # pyright: ignore[reportArgumentType]
         checked = full_ok & branch & checked
     ok = finite & increasing & checked
+    if mech.quaternions:  # (unit to √eps, checked above: to rounding from here on)
+        q0r = normalize_quaternions(q0r, mech.quaternions)
     y0 = form.state(q0r, qd0r, t0r, run)
     y0 = jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), y0)
     if graph_throw:  # an invalid input raises before the solve: the solve depends on it, so it is never pruned
@@ -782,7 +785,7 @@ def _run_traced(
             tol = float(np.sqrt(np.finfo(np.dtype(q0.dtype)).eps)) * 1e-3
             root_finder = optx.Newton(rtol=tol, atol=tol)
         event = diffrax.Event(conditions, root_finder=root_finder, **direction)
-    maps = form.step_maps()
+    maps = form.solve_maps()
     if dense and isinstance(adjoint, diffrax.BacksolveAdjoint):
         raise ValueError(
             "adjoint=diffrax.BacksolveAdjoint() cannot differentiate dense output (saveat=SaveAt(dense=True)): "
@@ -875,6 +878,10 @@ def _run_traced(
         out["energy"] = jax.vmap(lambda a, b, t: mech.energy(a, b, t, params))(q, qd, ts_s)
     if "residual" in record:
         out["residual"] = jax.vmap(lambda a, b, t: mech.constraint(a, b, t, params))(q, qd, ts_s)
+    u = None
+    if mech.has_speeds:  # the solve's velocities are the speeds; qd is dq/dt
+        u, qd = qd, jax.vmap(lambda a, b, t: mech.rate(a, b, t, params))(q, qd, ts_s)
+        u = jnp.where(bcast(saved, u), u, jnp.inf)
     q, qd = (jnp.where(bcast(saved, x), x, jnp.inf) for x in (q, qd))
     out = {k: jnp.where(bcast(saved, v), v, jnp.nan) for k, v in out.items()}
     stats = dict(stats)
@@ -958,20 +965,23 @@ def _run_traced(
         return jnp.where(nan_all, jnp.nan, x) + link.astype(x.dtype)
 
     q, qd = finish(q), finish(qd)
+    u = None if u is None else finish(u)
     out = {k: finish(v) for k, v in out.items()}
     if graph_throw:  # on every output, so that whatever the caller keeps carries the check
         q, qd = raise_in_graph(q, status), raise_in_graph(qd, status)
+        u = None if u is None else raise_in_graph(u, status)
         out = {k: raise_in_graph(v, status) for k, v in out.items()}
     return Solution(
         ts=out_ts,
         q=q,
         qd=qd,
+        speeds=u if mech.has_speeds else None,
         multipliers=out.get("multipliers"),
         energy=out.get("energy"),
         residual=out.get("residual"),
         stats=stats,
         status=status,
-        names=mech.coordinate_names(s),
+        names=mech.coordinate_names(q.shape[-1]),
         dense=DenseMotion(interpolation, form, run, expand) if dense and interpolation is not None else None,
         event_mask=event_mask,
     )

@@ -34,7 +34,17 @@ class DenseMotion(eqx.Module):
         q, qd = self.form.unpack(y, t, self.params)
         if self.expand is not None:
             q, qd, _ = self.expand(q, qd, t, self.params)
+        if self.form.bound_mech.has_speeds:  # (q, dq/dt), as the reports; `speeds` gives u
+            return q, self.form.rate(q, qd, t, self.params)
         return q, qd
+
+    def speeds(self, t: Float[Array, ""] | float) -> Float[Array, " k"]:
+        """The speeds u at time t (the velocities qd for a mechanism without `kinematics`)."""
+        y = self.interpolation.evaluate(t)
+        q, u = self.form.unpack(y, t, self.params)
+        if self.expand is not None:
+            q, u, _ = self.expand(q, u, t, self.params)
+        return u
 
 
 class Expansion(eqx.Module):
@@ -60,8 +70,11 @@ class Solution(eqx.Module):
         ts: report times (n,), s (with an event that stopped the run early,
             the times after the stop are inf).
         q: coordinates (n, s) at `ts`.
-        qd: velocities (n, s) at `ts` (dependent ones from the constraints for
+        qd: velocities dq/dt (n, s) at `ts` (dependent ones from the constraints for
             "appell"/"substituted").
+        u: the speeds (n, k) at `ts` for a mechanism with `kinematics` (the
+            integrated quasi-velocities, e.g. body angular velocities, rad/s);
+            the same array as `qd` otherwise.
         multipliers: constraint multipliers λ (n, m), when recorded: the
             constraint forces are `Aᵀ λ` with `A = ∂c/∂qd` (for the variator
             λ is the tangential contact force times the roller radius, N·m).
@@ -110,6 +123,12 @@ class Solution(eqx.Module):
     event_mask: Any = None
     slipping: Optional[Bool[Array, "n c"]] = None
     contacts: Any = None  # a jaxnh.ContactDiagnostics (defined with the friction solve)
+    speeds: Optional[Float[Array, "n k"]] = None  # (`u`; None: u is qd)
+
+    @property
+    def u(self) -> Float[Array, "n k"]:
+        """The speeds at `ts`: the integrated quasi-velocities with `kinematics`, else `qd`."""
+        return self.qd if self.speeds is None else self.speeds
 
     @property
     def success(self) -> Bool[Array, "..."]:

@@ -155,6 +155,9 @@ class MappedSolver(diffrax.AbstractAdaptiveSolver, diffrax.AbstractWrappedSolver
         y1_mapped, corr, reject, fail = self.maps.post(t0, y0, t1, y1, args)
         if corr is not None:
             y_error = jax.tree_util.tree_map(lambda e, c: e + c, y_error, corr)
+        project_error = getattr(self.maps, "project_error", None)
+        if project_error is not None and y_error is not None:
+            y_error = project_error(y1_mapped, y_error, args)
         # a map that can never reject or fail says so with a Python False: the step then carries no
         # select on its error, and its result stays diffrax's static one (a traced result is a
         # loop-carried value that costs about a microsecond per step on a CPU)
