@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import jaxnh as nh
+import jaxnh.identify
 from jaxnh.models import turntable
 from jaxnh.rigid import quaternion_rate, rotation_from_quaternion
 
@@ -182,3 +183,15 @@ def test_dense_output_gives_rates_and_speeds():
     w = sol.dense.speeds(1.0)
     assert q.shape == (4,) and qd.shape == (4,) and w.shape == (3,)
     np.testing.assert_allclose(qd, quaternion_rate(q, w, frame="body"), rtol=0, atol=64 * EPS)
+
+
+def test_linearize_refuses_speeds_by_name():
+    with pytest.raises(ValueError, match="kinematics"):
+        nh.linearize(FREE_BODY, {"I": INERTIA}, Q0, W0)
+
+
+def test_fit_and_experiment_refuse_speeds_by_name():
+    with pytest.raises(ValueError, match="kinematics"):
+        nh.fit(FREE_BODY, {"I": INERTIA}, None, free=("I",))  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match="kinematics"):
+        nh.identify.experiment(FREE_BODY, {"I": INERTIA}, jnp.linspace(0.0, 1.0, 3), free=("I",), q0=Q0, qd0=W0)

@@ -173,6 +173,11 @@ def linearize(
     """
     if method not in LINEAR_METHODS:
         raise ValueError(f"linearize: method must be one of {LINEAR_METHODS}; got {method!r}")
+    if isinstance(mech, Mechanism) and mech.kinematics is not None:
+        raise ValueError(
+            "linearize: a mechanism with `kinematics` (speeds) is not supported yet; linearize the same "
+            "mechanism written in q̇ (angles, without `kinematics`) about the steady motion"
+        )
     q = as_float(q)
     qd = jnp.asarray(qd, dtype=q.dtype)
     t = as_time(t, q)

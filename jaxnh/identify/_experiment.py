@@ -281,6 +281,11 @@ def experiment(
     """
     if not isinstance(mech, Mechanism):
         raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
+    if mech.kinematics is not None:
+        raise ValueError(
+            "experiment: a mechanism with `kinematics` (speeds, e.g. a unit quaternion) is not supported yet; "
+            "write the mechanism in q̇ to design an experiment for it"
+        )
     ts = np.asarray(ts, dtype=float)
     if ts.ndim != 1 or ts.size < 20 or not np.all(np.diff(ts) > 0):
         raise ValueError("ts: need a strictly increasing 1-D array of at least 20 sample times (s)")

@@ -530,6 +530,11 @@ def fit(
     Returns:
         A `FitResult`.
     """
+    if getattr(mech, "kinematics", None) is not None:
+        raise ValueError(
+            "fit: a mechanism with `kinematics` (speeds, e.g. a unit quaternion) is not supported yet: the fit "
+            "estimates initial coordinates and velocities one per coordinate; write the mechanism in q̇ to fit it"
+        )
     started = time.perf_counter()
     sigma = getattr(data, "sigma", None)
     if noise is None and sigma:
