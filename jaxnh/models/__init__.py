@@ -1,10 +1,11 @@
 """Ready-made mechanisms: `variator` (the seed paper's friction variator), `sleigh`
-(Chaplygin sleigh), `knife_edge` (on an incline), `disc` (rolling disc), `bicycle`
+(Chaplygin sleigh), `chaplygin` (the Chaplygin sphere, in a unit quaternion),
+`knife_edge` (on an incline), `disc` (rolling disc), `bicycle`
 (the Whipple bicycle benchmark), `turntable` (a ball on a turntable, in a unit
 quaternion) and `balance_assist` (a real bicycle's roll-rate feedback steer control,
 fitted to measured weave eigenvalues)."""
 
-from jaxnh.models import balance_assist, bicycle, disc, knife_edge, sleigh, turntable, variator
+from jaxnh.models import balance_assist, bicycle, chaplygin, disc, knife_edge, sleigh, turntable, variator
 
 
-__all__ = ["balance_assist", "bicycle", "disc", "knife_edge", "sleigh", "turntable", "variator"]
+__all__ = ["balance_assist", "bicycle", "chaplygin", "disc", "knife_edge", "sleigh", "turntable", "variator"]
