@@ -195,3 +195,47 @@ def test_fit_and_experiment_refuse_speeds_by_name():
         nh.fit(FREE_BODY, {"I": INERTIA}, None, free=("I",))  # pyright: ignore[reportArgumentType]
     with pytest.raises(ValueError, match="kinematics"):
         nh.identify.experiment(FREE_BODY, {"I": INERTIA}, jnp.linspace(0.0, 1.0, 3), free=("I",), q0=Q0, qd0=W0)
+
+
+W_FRAME = 0.7  # rad/s: the rotating frame's rate
+
+
+def _rotating_frame_rate(q, u, t, p):
+    """A position q in axes turning at W_FRAME, speeds u the inertial velocity in those axes:
+    q̇ = u − Ω ẑ × q (an affine term in q, k(q) = Ω (q1, −q0))."""
+    return jnp.stack([u[0] + W_FRAME * q[1], u[1] - W_FRAME * q[0]])
+
+
+ROTATING = nh.Mechanism(lambda q, u, t, p: 0.5 * jnp.sum(u**2), kinematics=_rotating_frame_rate)
+
+
+@pytest.mark.parametrize("method", ["lagrange", "appell"])
+def test_affine_kinematics_free_particle_in_a_rotating_frame(method):
+    """Hamel's terms of the drift k(q): a free particle seen from turning axes moves on a straight
+    line at constant speed in the inertial frame. (Without those terms the speeds would stay
+    constant in the turning axes, an error of order 1.) Bound: the positions reach 5 m over 10 s;
+    a global error of 1e2 rtol of that."""
+    ts = jnp.linspace(0.0, 10.0, 11)
+    sol = nh.simulate(ROTATING, {}, jnp.array([1.0, 0.0]), jnp.array([0.3, 0.5]), ts, method=method, rtol=1e-10)
+    c, s = jnp.cos(W_FRAME * ts), jnp.sin(W_FRAME * ts)
+    X = c * sol.q[:, 0] - s * sol.q[:, 1]
+    Y = s * sol.q[:, 0] + c * sol.q[:, 1]
+    assert float(jnp.max(jnp.abs(X - (1.0 + 0.3 * ts)))) <= 1e2 * 1e-10 * 5
+    assert float(jnp.max(jnp.abs(Y - 0.5 * ts))) <= 1e2 * 1e-10 * 5
+
+
+def _scale(t):
+    return 1.0 + 0.5 * jnp.sin(t)
+
+
+SCALED = nh.Mechanism(lambda q, u, t, p: 0.5 * (u[0] / _scale(t)) ** 2, kinematics=lambda q, u, t, p: u / _scale(t))
+
+
+def test_time_dependent_kinematics():
+    """Hamel's ∂K/∂t term: a free particle with the speed u = s(t) ẋ moves at constant ẋ. Bound:
+    x reaches 20 m; a global error of 1e2 rtol of it."""
+    ts = jnp.linspace(0.0, 10.0, 11)
+    sol = nh.simulate(SCALED, {}, jnp.zeros(1), jnp.array([2.0 * float(_scale(0.0))]), ts, rtol=1e-10)
+    assert float(jnp.max(jnp.abs(sol.q[:, 0] - 2.0 * ts))) <= 1e2 * 1e-10 * 20
+    assert float(jnp.max(jnp.abs(sol.qd[:, 0] - 2.0))) <= 1e2 * 1e-10 * 2
+    np.testing.assert_allclose(sol.u[:, 0], 2.0 * _scale(ts), rtol=1e2 * 1e-10)
