@@ -170,7 +170,38 @@ FORMULATIONS: dict[str, dict[str, Any]] = {
     "projection": {"method": "lagrange", "stabilization": "projection"},
     "baumgarte": {"method": "lagrange", "stabilization": "baumgarte"},  # rate: one over the report interval
     "appell_fixed": {"method": nh.Appell(independent=(0,))},
+    # the same variator written in speeds (`MECH_SPEEDS`): the solve integrates u, reports q and q̇
+    "speeds": {"method": "lagrange"},
+    "speeds_appell": {"method": "appell"},
 }
+
+# Speeds as a factor: the variator with u = (K φ1', φ2') and `kinematics` q̇ = (u0 / K, u1). T, c and
+# S are the variator's at q̇(u), the forces conjugate to u are Q ∂q̇/∂u; the motion (q, q̇) is the
+# variator's, so every bound below holds unchanged. (K is constant: Hamel's terms vanish; they are
+# tested on bodies that turn in tests/test_speeds.py.)
+K_SPEED = 2.0
+SPEED_SCALE = jnp.array([1.0 / K_SPEED, 1.0])
+
+
+def _variator_rate(q, u, t, p):
+    return u * SPEED_SCALE.astype(u.dtype)
+
+
+MECH_SPEEDS = nh.Mechanism(
+    lambda q, u, t, p: MECH.kinetic(q, _variator_rate(q, u, t, p), t, p),
+    constraints=lambda q, u, t, p: MECH.constraints(q, _variator_rate(q, u, t, p), t, p),  # pyright: ignore[reportOptionalCall]
+    forces=lambda q, u, t, p: MECH.forces(q, _variator_rate(q, u, t, p), t, p) * SPEED_SCALE,  # pyright: ignore[reportOptionalCall]
+    kinematics=_variator_rate,
+    names=MECH.names,
+    independent=MECH.independent,
+)
+
+
+def mechanism_and_start(case: Case):
+    """The mechanism and the initial velocities (speeds) of a case's formulation."""
+    if case["formulation"].startswith("speeds"):
+        return MECH_SPEEDS, QD0 / SPEED_SCALE
+    return MECH, QD0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -294,7 +325,7 @@ def expect(case: Case) -> Expect:
             return Expect("refused", ValueError, ("adjoint=ForwardSensitivity()", "diffrax adjoint"))
         if c["meter"] == "text":
             return Expect("refused", ValueError, ("adjoint=ForwardSensitivity()", "progress meters"))
-    if adjoint == "backsolve" and c["formulation"] in ("appell", "appell_fixed", "projection"):
+    if adjoint == "backsolve" and c["formulation"] in ("appell", "appell_fixed", "projection", "speeds_appell"):
         # (simulate: BacksolveAdjoint cannot differentiate the maps around each step: Appell's choice
         # of independent velocities, Lagrange's projection)
         return Expect("refused", ValueError, ("adjoint=diffrax.BacksolveAdjoint()", "RecursiveCheckpointAdjoint()"))
@@ -424,9 +455,10 @@ def program(case: Case) -> Callable:
     (row, Solution)). The derivative programs also give the row at J2 ± h for the central
     difference, from the same compiled program."""
     kw = simulate_kwargs(case)
+    mech, v0 = mechanism_and_start(case)
 
     def run(j2):
-        return nh.simulate(MECH, with_j2(j2), Q0, QD0, TS, **kw)
+        return nh.simulate(mech, with_j2(j2), Q0, v0, TS, **kw)
 
     def scalar(j2):
         sol = run(j2)
