@@ -185,9 +185,32 @@ def test_dense_output_gives_rates_and_speeds():
     np.testing.assert_allclose(qd, quaternion_rate(q, w, frame="body"), rtol=0, atol=64 * EPS)
 
 
-def test_linearize_refuses_speeds_by_name():
-    with pytest.raises(ValueError, match="kinematics"):
+def test_linearize_refuses_quaternions_by_name():
+    with pytest.raises(ValueError, match="quaternions"):
         nh.linearize(FREE_BODY, {"I": INERTIA}, Q0, W0)
+
+
+def _warp(q):
+    return 1.0 + q[0] ** 2 + 0.3 * q[0]
+
+
+PENDULUM_G, PENDULUM_L = 9.81, 0.7  # m/s², m
+WARPED_PENDULUM = nh.Mechanism(
+    lambda q, u, t, p: 0.5 * PENDULUM_L**2 * (u[0] / _warp(q)) ** 2,
+    potential=lambda q, t, p: -PENDULUM_G * PENDULUM_L * jnp.cos(q[0]),
+    kinematics=lambda q, u, t, p: u / _warp(q),
+)
+
+
+@pytest.mark.parametrize("method", ["lagrange", "appell"])
+def test_linearize_with_speeds(method):
+    """A pendulum whose speed is u = (1 + θ² + 0.3 θ) θ̇: about the lowest point its eigenvalues are
+    ±i √(g/l), whatever the speed's scale (to rounding of the 2×2 eigenproblem)."""
+    lin = nh.linearize(WARPED_PENDULUM, {}, jnp.zeros(1), jnp.zeros(1), method=method)
+    ev = np.sort_complex(np.asarray(lin.eigenvalues()))
+    expected = np.sqrt(PENDULUM_G / PENDULUM_L)
+    np.testing.assert_allclose(ev.imag, [-expected, expected], rtol=64 * EPS)
+    np.testing.assert_allclose(ev.real, 0.0, atol=64 * EPS * expected)
 
 
 def test_fit_and_experiment_refuse_speeds_by_name():

@@ -66,6 +66,7 @@ from jaxnh._equations.split import (
     resolve_independent,
     VelocitySplit,
 )
+from jaxnh._equations.terms import mass_and_velocity_terms
 from jaxnh._model.checks import constraints_affine
 from jaxnh._model.mechanism import _state_terms, Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees, holonomic_consistent
@@ -173,10 +174,15 @@ def linearize(
     """
     if method not in LINEAR_METHODS:
         raise ValueError(f"linearize: method must be one of {LINEAR_METHODS}; got {method!r}")
-    if isinstance(mech, Mechanism) and mech.kinematics is not None:
+    if (
+        isinstance(mech, Mechanism)
+        and mech.kinematics is not None
+        and (mech.quaternions or jnp.shape(q) != jnp.shape(qd))
+    ):
         raise ValueError(
-            "linearize: a mechanism with `kinematics` (speeds) is not supported yet; linearize the same "
-            "mechanism written in q̇ (angles, without `kinematics`) about the steady motion"
+            "linearize: a mechanism with `kinematics` is linearised in its coordinates and speeds, one speed "
+            "per coordinate; unit quaternions (four coordinates for three speeds) are not supported: linearize "
+            "the same mechanism written in angles (with speeds or with q̇) about the steady motion"
         )
     q = as_float(q)
     qd = jnp.asarray(qd, dtype=q.dtype)
@@ -410,9 +416,14 @@ def _dynamics_traced(mech, params, K, dK, vd, t, method, coordinates):
     mass = B.T @ Fqdd @ B
     stiffness, damping = dE[:, :nc], dE[:, nc:]
     vd_next = vd - solve_spd(mass, E)  # exact already unless the given accelerations were wrong
-    P = pick(dqdot, coordinates)  # ∂q̇_C/∂x (unit rows for kept coordinates that are independent)
+    if mech.kinematics is None:
+        P = pick(dqdot, coordinates)  # ∂q̇_C/∂x (unit rows for kept coordinates that are independent)
+        rate = qdot
+    else:  # q̇ = r(q, u): ∂q̇/∂x = r_q ∂q/∂x + r_u ∂u/∂x
+        rate, (Rq, Ru) = mech.rate(q, qdot, t, params), jax.jacfwd(mech.rate, argnums=(0, 1))(q, qdot, t, params)
+        P = pick(Rq @ dq + Ru @ dqdot, coordinates)
     A = jnp.concatenate([P, -solve_spd(mass, dE)], axis=0)
-    rates = jnp.concatenate([pick(qdot, coordinates), vd_next])
+    rates = jnp.concatenate([pick(rate, coordinates), vd_next])
     return A, mass, damping, stiffness, rates, vd_next
 
 
@@ -425,7 +436,11 @@ _dynamics = one_shot_jit(_dynamics_traced)
 
 
 def lagrange_expression(mech: Mechanism, q, qd, qdd, t, params):
-    """`d/dt ∂T/∂q̇ − ∂T/∂q = M q̈ + h` along (q̇, q̈), without forming M (s,)."""
+    """`d/dt ∂T/∂q̇ − ∂T/∂q = M q̈ + h` along (q̇, q̈), without forming M (s,). With speeds
+    (`kinematics`), the Boltzmann–Hamel expression `M u̇ + h` (`speed_terms`)."""
+    if mech.kinematics is not None:
+        M, h = mass_and_velocity_terms(mech, q, qd, t, params)
+        return M @ qdd + h
 
     def gradients(q_, qd_, t_):  # ∂T/∂q and ∂T/∂q̇ from one reverse pass
         return jax.grad(mech.kinetic, argnums=(0, 1))(q_, qd_, t_, params)
