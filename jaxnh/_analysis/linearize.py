@@ -177,7 +177,7 @@ def linearize(
     if (
         isinstance(mech, Mechanism)
         and mech.kinematics is not None
-        and (mech.quaternions or jnp.shape(q) != jnp.shape(qd))
+        and (mech.quaternions or jnp.asarray(q).shape != jnp.asarray(qd).shape)
     ):
         raise ValueError(
             "linearize: a mechanism with `kinematics` is linearised in its coordinates and speeds, one speed "
