@@ -243,6 +243,12 @@ def test_solution_to_dataframe_single_and_batched():
     df = solution_to_dataframe(sol)
     assert df.index.names == ["batch", "t"] and len(df) == 6 * 5 and df.attrs["batch_shape"] == (2, 3)
     assert df.loc[5, "success"].eq(False).all() and df.loc[0, "success"].all() and not df.attrs["success"]
+    sol.q[1, 1, :, 0] = np.arange(5) + 100.0  # member 4 in C order: its own rows, in report order
+    df = solution_to_dataframe(sol)
+    np.testing.assert_array_equal(df.loc[4, "phi1"].to_numpy(), np.arange(5) + 100.0)
+    np.testing.assert_array_equal(df.loc[3, "phi1_dot"].to_numpy(), sol.qd[1, 0, :, 0])
+    sol.speeds = np.full((2, 3, 5, 1), 7.0)  # a mechanism with `kinematics`: the speeds as u_<i>
+    assert (solution_to_dataframe(sol)["u_0"] == 7.0).all()
     assert isinstance(df, pd.DataFrame)
     with pytest.raises(ValueError, match="must be"):
         solution_to_dataframe(types.SimpleNamespace(q=np.zeros(3), qd=np.zeros(3), ts=np.zeros(3)))
