@@ -61,7 +61,7 @@ from jaxnh._equations import (  # noqa: E402
 )
 from jaxnh._equations.consistent import consistent_velocities  # noqa: E402
 from jaxnh._equations.step_maps import StepMaps  # noqa: E402
-from jaxnh._model.contacts import FrictionContact  # noqa: E402
+from jaxnh._model.contacts import ContactLaw, Coulomb, FrictionContact, Stribeck, Viscous  # noqa: E402
 from jaxnh._model.mechanism import Mechanism  # noqa: E402
 from jaxnh._solve.friction import ContactDiagnostics  # noqa: E402
 from jaxnh._solve.ode import ODE, ode  # noqa: E402
@@ -108,6 +108,10 @@ __version__ = "0.1.0"
 __all__ = [
     "Mechanism",
     "FrictionContact",
+    "ContactLaw",
+    "Coulomb",
+    "Viscous",
+    "Stribeck",
     "ContactDiagnostics",
     "stick_margin",
     "StickMargin",

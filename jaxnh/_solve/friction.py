@@ -8,8 +8,10 @@ The motion is piecewise smooth: between transitions every contact either
 * **sticks**: its rows hold like any constraint, with the force the
   equations need, as long as that force is inside the static cone
   `‖λ‖ ≤ μs N`; or
-* **slips**: its rows are released, and the kinetic force `−μk N ŵ` acts
-  along them (ŵ the direction of the slip velocity w).
+* **slips**: its rows are released, and the kinetic force `−F ŵ` acts
+  along them (ŵ the direction of the slip velocity w), of the size its law
+  gives (`jaxnh.ContactLaw`): `F = μk N` for Coulomb's law, the default, or a
+  function of the slip speed along ŵ (`_Friction.law_forces`).
 
 How the equations change with the mode, with every shape fixed:
 
@@ -76,6 +78,7 @@ from jaxnh._model.checks import (
     constraint_scale,
     mass_matrix_check,
 )
+from jaxnh._model.contacts import ContactLaw, Coulomb
 from jaxnh._model.mechanism import Mechanism
 from jaxnh._solve.diagnose import acceleration_energy_agrees
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
@@ -108,10 +111,11 @@ STOP_CAUSES = (
     "normal force not finite",
     "μs not finite or below μk",
     "μk not finite or negative",
+    "slip force of the contact law not finite or negative",
 )
 """Names of the codes in `ContactDiagnostics.stop_cause`: why the contact `stopped_contact` stopped the solve."""
 
-CAP, N_LOST = 1, 2
+CAP, N_LOST, LAW_INVALID = 1, 2, 6
 
 LOST_BELOW = 1e-6
 """At an event, a contact whose normal force is below this fraction of its value at the segment's start
@@ -152,7 +156,8 @@ class ContactDiagnostics(eqx.Module):
         slip_fraction: (c,): slip_time over the duration of the run.
         slip_distance: (c,), m: ∫‖w‖ dt over the slip, w the slip velocity.
         dissipated_energy: (c,), J: energy dissipated by kinetic friction,
-            ∫ μk N ‖w‖ dt (integrated with the motion).
+            ∫ F ‖w‖ dt, F the size of the kinetic force (μk N for Coulomb's law),
+            integrated with the motion.
         peak_utilisation: (c,): the largest ‖λ‖/(μs N) while sticking, over
             the report times and the start and end of every segment (1 at a
             stick→slip transition); NaN for a contact that never sticks.
@@ -164,7 +169,8 @@ class ContactDiagnostics(eqx.Module):
         stopped_contact: int, the contact that stopped the solve (−1 if none).
         stop_cause: int, why (`STOP_CAUSES`): 1 the transition cap, 2 the
             normal force fell to zero, 3 the normal force, 4 μs, 5 μk became
-            NaN, inf or unphysical (0 if the solve was not stopped by a contact).
+            NaN, inf or unphysical, 6 the contact's law gave a slip force that is
+            NaN, inf or negative (0 if the solve was not stopped by a contact).
         initial_slipping: (c,) bool: which contacts slip at the start (the
             start is not a transition: `transitions` lists changes of mode only,
             and `slip_intervals` starts at ts[0] for such a contact).
@@ -262,7 +268,7 @@ class Mode(eqx.Module):
     Attributes:
         slipping: (c,) bool.
         direction: (f,) the unit slip direction of each slipping contact, over its rows
-            (for a line contact ±1); the kinetic force is −μk N along it.
+            (for a line contact ±1); the kinetic force is −F along it (F = μk N for Coulomb's law).
         tau: (c,) m/s, a regularisation of the slip direction of a two-row contact
             (√eps of its velocity scale): the direction used is that of
             `(|w·d| + tau) d + w⊥`, exact where ‖w‖ ≫ tau and equal to d at w = 0.
@@ -284,6 +290,30 @@ class Mode(eqx.Module):
 def _safe_norm(x):
     """‖x‖ with a finite derivative at x = 0 (its value there is √tiny, not 0)."""
     return jnp.sqrt(jnp.sum(x * x) + jnp.finfo(x.dtype).tiny)
+
+
+def _law_force(law: ContactLaw, speed, N, mus, muk, q, qd, t, params):
+    """(F, bad): the size of a law's kinetic force (N) at the slip speed `speed` (m/s), and whether the
+    law's value there is NaN, inf or negative.
+
+    The law is called at speeds ≥ 0 only. Below 0 (past the stop that ends a slip, where the steps that
+    locate the stop evaluate the field) F is continued linearly with the law's slope at 0: value and slope
+    agree at 0, so the field stays C¹ through the stop and the step that holds it is not cut by a kink.
+    The slope is taken at a constant 0, so that a parameter derivative of it asks no derivative of the law
+    in the speed beyond the first (v^δ with 1 < δ < 2 has an infinite second one at 0); an infinite slope
+    (a law that violates `ContactLaw`'s requirements) is continued flat instead.
+    """
+    dtype = speed.dtype
+
+    def force(v):
+        return jnp.asarray(law.slip_force(v, N, mus, muk, q, qd, t, params), dtype).reshape(())
+
+    ahead = speed >= 0
+    value = force(jnp.where(ahead, speed, 0.0))
+    at_rest, slope = jax.jvp(force, (jnp.zeros((), dtype),), (jnp.ones((), dtype),))
+    slope = jnp.where(jnp.isfinite(slope), slope, 0.0)
+    size = jnp.where(ahead, value, at_rest + slope * speed)
+    return size, ~jnp.isfinite(value) | (value < 0)
 
 
 class _Friction(eqx.Module):
@@ -352,13 +382,55 @@ class _Friction(eqx.Module):
         vals = [c.values(q, qd, t, params) for c in self.contacts]
         return tuple(jnp.stack([v[i] for v in vals]).astype(qd.dtype) for i in range(3))
 
+    @property
+    def has_laws(self) -> bool:
+        """Whether a contact has a law other than Coulomb's (a scene of Coulomb contacts only runs the
+        operations it ran before laws existed, and nothing of theirs)."""
+        return any(type(c.law) is not Coulomb for c in self.contacts)
+
     @staticmethod
-    def invalid(N, mus, muk):
+    def invalid(N, mus, muk, law_bad=None):
         """(c,) int: 0 where the contact's values are physical, else the `STOP_CAUSES` code of the first
-        value that is not (the normal force's sign is the normal-force guard's, not checked here)."""
+        value that is not (the normal force's sign is the normal-force guard's, not checked here).
+        `law_bad` (c,) bool, where each contact's law gave a slip force that is not finite or negative
+        (`law_forces`), comes last (None: Coulomb contacts only, whose force is μk N)."""
         bad_mus = ~jnp.isfinite(mus) | (mus < muk)
         bad_muk = ~jnp.isfinite(muk) | (muk < 0)
-        return jnp.where(~jnp.isfinite(N), 3, jnp.where(bad_mus & jnp.isfinite(muk), 4, jnp.where(bad_muk, 5, 0)))
+        code = jnp.where(~jnp.isfinite(N), 3, jnp.where(bad_mus & jnp.isfinite(muk), 4, jnp.where(bad_muk, 5, 0)))
+        if law_bad is None:
+            return code
+        return jnp.where((code == 0) & law_bad, LAW_INVALID, code)
+
+    def law_forces(self, w, mode: Mode, N, mus, muk, q, qd, t, params):
+        """The size of each contact's kinetic force (c,), N, at its slip speed along the slip direction
+        (`directions`: smooth through 0 for a two-row contact), and (c,) bool where its law's force is
+        not finite or negative (Coulomb's contacts: μk N, and never: their values are `invalid`'s)."""
+        along = self.directions(w, mode) * w
+        sizes, bad = [], []
+        for j, (c, idx) in enumerate(zip(self.contacts, self.local)):
+            if type(c.law) is Coulomb:
+                sizes.append(muk[j] * N[j])
+                bad.append(jnp.asarray(False))
+                continue
+            size, b = _law_force(c.law, jnp.sum(pick(along, idx)), N[j], mus[j], muk[j], q, qd, t, params)
+            sizes.append(size)
+            bad.append(b)
+        return jnp.stack(sizes), jnp.stack(bad)
+
+    def law_codes(self, q, qd, t, params, mode: Mode):
+        """(c,) int: the `STOP_CAUSES` code of a law whose slip force at (q, qd, t) in `mode` is not
+        finite or negative, else 0."""
+        N, mus, muk = self.values(q, qd, t, params)
+        _, bad = self.law_forces(self.slip(q, qd, t, params), mode, N, mus, muk, q, qd, t, params)
+        return jnp.where(bad, LAW_INVALID, 0)
+
+    def force_at_rest(self, j: int, N, mus, muk, q, qd, t, params):
+        """The size of contact j's kinetic force at slip speed 0, N (its law's; μk N for Coulomb's)."""
+        law = self.contacts[j].law
+        if type(law) is Coulomb:
+            return muk[j] * N[j]
+        v = jnp.zeros((), N.dtype)
+        return jnp.asarray(law.slip_force(v, N[j], mus[j], muk[j], q, qd, t, params), N.dtype).reshape(())
 
     def slip(self, q, qd, t, params):
         """Slip velocities w of the friction rows (f,), m/s."""
@@ -382,18 +454,26 @@ class _Friction(eqx.Module):
             out.append(v / _safe_norm(v))
         return jnp.concatenate(out)
 
-    def kinetic(self, w, mode: Mode, N, muk):
-        """Kinetic friction forces (f,), N, on the rows of slipping contacts (0 on the others)."""
-        size = jnp.stack([-muk[j] * N[j] for j in self.owner])
+    def kinetic(self, w, mode: Mode, N, mus, muk, q, qd, t, params):
+        """Kinetic friction forces (f,), N, on the rows of slipping contacts (0 on the others), and (c,)
+        bool where a contact's law gave a force that is not finite or negative (None when every contact
+        follows Coulomb's law: then the force is −μk N along the slip direction, as it always was)."""
+        law_bad = None
+        if self.has_laws:
+            sizes, law_bad = self.law_forces(w, mode, N, mus, muk, q, qd, t, params)
+            size = jnp.stack([-sizes[j] for j in self.owner])
+        else:
+            size = jnp.stack([-muk[j] * N[j] for j in self.owner])
         # finite where a value is not: the field stays finite up to the guard that stops the solve there
         # (`validity`), so the step that meets the bad value is accepted and the event located
         size = jnp.where(jnp.isfinite(size), size, 0.0)
-        return jnp.where(self.released(mode.slipping, w.dtype) > 0, size * self.directions(w, mode), 0.0)
+        return jnp.where(self.released(mode.slipping, w.dtype) > 0, size * self.directions(w, mode), 0.0), law_bad
 
     # Lagrange's equations with some rows released: the masked KKT system
     def kkt(self, q, qd, t, params, mode: Mode):
         """Accelerations qdd (s,), multipliers λ (m,) (the kinetic force on released rows),
-        slip velocities w (f,) and the contact values (N, μs, μk).
+        slip velocities w (f,), the contact values (N, μs, μk) and where the contacts' laws gave
+        a bad force ((c,) bool, or None: `kinetic`).
 
         With M = L Lᵀ, W = L⁻¹ Aᵀ and the kinetic forces F as generalized forces
         `Aᵀ F`: `(WᵀW)_EE λ_E = −b_E − W_Eᵀ u`, `qdd = L⁻ᵀ (u + W_E λ_E)` over the
@@ -406,14 +486,15 @@ class _Friction(eqx.Module):
         w = self.slip(q, qd, t, params)
         N, mus, muk = self.values(q, qd, t, params)
         E = self.scatter(qd.dtype)
-        Fm = mm(E, self.kinetic(w, mode, N, muk))
+        F, law_bad = self.kinetic(w, mode, N, mus, muk, q, qd, t, params)
+        Fm = mm(E, F)
         e = 1.0 - mm(E, self.released(mode.slipping, qd.dtype))
         u = solve_lower(L, mech.generalized_forces(q, qd, t, params) - h + mm(A.T, Fm))
         W = solve_lower(L, A.T)
         S = mm(W.T, W) * e[:, None] * e[None, :] + jnp.diag(1.0 - e)
         lam = solve_psd_min_norm(S, e * (-b - mm(W.T, u))) * e
         qdd = solve_upper_t(L, u + mm(W, lam))
-        return qdd, lam + (1.0 - e) * Fm, w, (N, mus, muk)
+        return qdd, lam + (1.0 - e) * Fm, w, (N, mus, muk), law_bad
 
     def contact_forces(self, lam):
         """λ of each contact's rows (list of (1,) or (2,) arrays), N."""
@@ -423,10 +504,10 @@ class _Friction(eqx.Module):
         """(2c,) normalised guards, positive while the mode holds. The first c: slip speed along the
         slip direction over the velocity scale (slipping); (μs N − ‖λ‖)/(μs N + ‖λ‖) (sticking).
         The last c, the contacts' validity: N over its scale at the segment's start where the values
-        are physical (`invalid`), else −1 (the solve stops there: a contact that loses its normal
-        force has no lift-off in this model, and friction must never push)."""
-        _, lam, w, (N, mus, muk) = self.kkt(q, qd, t, params, mode)
-        bad = self.invalid(N, mus, muk) != 0
+        and the law's force are physical (`invalid`), else −1 (the solve stops there: a contact that
+        loses its normal force has no lift-off in this model, and friction must never push)."""
+        _, lam, w, (N, mus, muk), law_bad = self.kkt(q, qd, t, params, mode)
+        bad = self.invalid(N, mus, muk, law_bad) != 0
         out = []
         for j, (lj, idx) in enumerate(zip(self.contact_forces(lam), self.local)):
             wj, d = pick(w, idx), pick(mode.direction, idx)
@@ -484,8 +565,8 @@ class _Friction(eqx.Module):
         qd, B, beta, A = self.appell_rates(q, v, u, t, params, mode, perm)
         rel = self.released(mode.slipping, q.dtype)
         w = u * rel
-        N, _, muk = self.values(q, qd, t, params)
-        F = self.kinetic(w, mode, N, muk)
+        N, mus, muk = self.values(q, qd, t, params)
+        F, _ = self.kinetic(w, mode, N, mus, muk, q, qd, t, params)
         Q = mech.generalized_forces(q, qd, t, params) + mm(A.T, mm(self.scatter(q.dtype), F))
         if mech.acceleration_energy is None:
             K, r = projected_terms(mech, q, qd, t, params, B, beta)
@@ -502,7 +583,7 @@ class _Friction(eqx.Module):
 
     def lagrange_field(self, t, y, params, mode: Mode):
         q, qd, _ = y
-        qdd, lam, w, _ = self.kkt(q, qd, t, params, mode)
+        qdd, lam, w, _, _ = self.kkt(q, qd, t, params, mode)
         F = pick(lam, self.flat) * self.released(mode.slipping, q.dtype)
         return (qd, qdd, self.rates(w, F, mode))
 
@@ -588,7 +669,7 @@ class _Friction(eqx.Module):
         E = self.scatter(q.dtype)
         for it in range(self.nc + 1):
             mode = Mode(~engaged, jnp.concatenate(direction), tau, scale, force_scale)
-            _, lam, _, _ = self.kkt(q, qd, t, params, mode)
+            _, lam, _, _, _ = self.kkt(q, qd, t, params, mode)
             forces = self.contact_forces(lam)
             viol = []
             for j, lj in enumerate(forces):
@@ -599,7 +680,7 @@ class _Friction(eqx.Module):
                 else:
                     rows_engaged = 1.0 - mm(E, self.released(~engaged, q.dtype))
                     G = self._delassus(q, qd, t, params, rows_engaged, self.contacts[j].rows)
-                    onset = _onset_direction(lj, G, muk[j] * N[j])
+                    onset = _onset_direction(lj, G, self.force_at_rest(j, N, mus, muk, q, qd, t, params))
                 direction[j] = jnp.where(out, onset, direction[j])
                 viol.append(out)
             engaged = engaged & ~jnp.stack(viol)
@@ -869,6 +950,12 @@ def _run_traced(
     # follows w elsewhere) and the guard w·d only through w at its root, where w = 0.
     qs0, qds0, ts0, ps0 = no_grad((q0r, qd0r, t0, params))
     mode0, _ = f.resolve(qs0, qds0, ts0, ps0, dummy, jnp.zeros((nc,), bool), initial=True)
+    if f.has_laws:  # the laws' forces at the start, in the modes the contacts start in
+        laws_ok = jnp.all(f.law_codes(qs0, qds0, ts0, ps0, mode0) == 0)
+        status0 = STATUS.where(ok & ~laws_ok, STATUS.friction_values_invalid, status0)  # pyright: ignore[reportArgumentType]
+        ok = ok & laws_ok
+        if graph_throw:
+            q0r = raise_in_graph(q0r, status0)
     mode0 = _where_tree(ok, mode0, dummy)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
     event = diffrax.Event(_Guard(f), root_finder=_EventRootFinder(rtol=tol, atol=tol), direction=True)
@@ -967,6 +1054,13 @@ def _run_traced(
         # at the event and just after it, where the value's own time dependence has crossed)
         probe = ts1 + 4 * tol * (1 + jnp.abs(ts1))
         bad = jnp.maximum(f.invalid(*f.values(qs1, qds1, ts1, ps1)), f.invalid(*f.values(qs1, qds1, probe, ps1)))
+        if f.has_laws:
+            # a law's force can turn bad with the state (the slip speed) as well as with t: it is read at the
+            # event and at the state carried on to the probe's time along the velocities and accelerations
+            qdd1 = f.kkt(qs1, qds1, ts1, ps1, mode_s)[0]
+            ahead = (qs1 + (probe - ts1) * qds1, qds1 + (probe - ts1) * qdd1, probe)
+            law = jnp.maximum(f.law_codes(qs1, qds1, ts1, ps1, mode_s), f.law_codes(*ahead, ps1, mode_s))
+            bad = jnp.where(bad != 0, bad, law)
         any_bad = jnp.any(bad != 0)
         # N over its scale at the segment's start is 0 at its event to the root finder's tolerance in t
         zero_force = g[nc:] <= LOST_BELOW
@@ -1052,7 +1146,7 @@ def _run_traced(
     modes = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b, b]), rep_mode, seg_mode)
 
     def forces(q_, qd_, t_, md):
-        _, lam, _, (N, mus, _) = f.kkt(q_, qd_, t_, params, md)
+        _, lam, _, (N, mus, _), _ = f.kkt(q_, qd_, t_, params, md)
         norms = jnp.stack([jnp.abs(x[0]) if x.shape[0] == 1 else _safe_norm(x) for x in f.contact_forces(lam)])
         return lam, norms, mus * N
 
