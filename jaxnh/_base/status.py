@@ -170,8 +170,9 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     # --- friction-held contacts (jaxnh._solve.friction) ---
     friction_values_invalid = (
         "A friction contact's values at the initial state are not physical: a normal force N < 0, "
-        "μk < 0 or μs < μk (or one of them is not finite). Check the contact's normal_force, "
-        "mu_static and mu_kinetic and the parameters they read."
+        "μk < 0 or μs < μk (or one of them is not finite), or its law's slip force is NaN, inf or "
+        "negative. Check the contact's normal_force, mu_static, mu_kinetic and law and the parameters "
+        "they read."
     )
     friction_transitions_exceeded = (
         "The friction contacts changed between sticking and slipping more often than "
@@ -190,10 +191,10 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     )
     contact_value_invalid = (
         "A friction contact's value became unphysical during the run: its normal force, μs or μk "
-        "is NaN or inf, μk < 0, or μs < μk. The solve stopped at the time it happened; "
-        "sol.contacts.stopped_at, stopped_contact and stop_cause give the time, the contact and "
-        "the value. Check the contact's normal_force, mu_static and mu_kinetic and the parameters "
-        "they read."
+        "is NaN or inf, μk < 0, or μs < μk, or its law's slip force is NaN, inf or negative. The "
+        "solve stopped at the time it happened; sol.contacts.stopped_at, stopped_contact and "
+        "stop_cause give the time, the contact and the value. Check the contact's normal_force, "
+        "mu_static, mu_kinetic and law, and the parameters they read."
     )
     constraint_jacobian_singular = (
         "A constraint's velocity Jacobian ∂c_k/∂qd vanishes at the initial state to within √eps of "
