@@ -10,7 +10,7 @@ import numpy as np
 from . import common as C
 
 
-STUDIES = ("headline", "size", "first_answer", "precision", "friction")
+STUDIES = ("headline", "size", "first_answer", "precision", "friction", "speeds")
 RECORDS = {  # reports their own scripts write (not run by run_all); each says its command and revision at its top
     "RELIABILITY.md": "no silent wrong answers: outcomes of many fuzzed cases (`python -m benchmarks.reliability`)",
     "STABILITY.md": "long runs, constraint drift, float32 (`python -m benchmarks.stability`)",
@@ -488,6 +488,209 @@ def friction(R) -> tuple[list, list]:
     return targets, out
 
 
+def speeds(R) -> tuple[list, list]:
+    D, TT = R["disc"], R["turntable"]
+    st, fa = D["steady"], D["first_answers"]
+    targets_, out = [], []
+    jx = "jaxnh simulate (lagrange, default)"
+    cells, errs, ok = [], [], []
+    for key, blk in st.items():
+        r = blk["ratios"].get("SciPy's better / jaxnh")
+        better = blk.get("better_scipy") or "?"
+        if r is not None:
+            cells.append(f"error ≤ {blk['target']:.0e}: {r:.1f}× ({'RK45' if 'RK45' in better else 'DOP853'})")
+            errs.append(f"{e(blk['rows'][jx]['error'])} vs {e(blk['rows'][better]['error'])}")
+            ok.append(r >= 20)
+    targets_.append(
+        [
+            "rolling disc in Kane's speeds, steady solve at matched error: SciPy's better method (RK45 or DOP853, "
+            "lambdified SymPy) / jaxnh `simulate` (defaults but rtol)",
+            "≥ 20×",
+            "; ".join(cells) or "—",
+            "; ".join(errs) or "—",
+            met(all(ok)) if ok else "—",
+        ]
+    )
+    fr = fa["ratios"]
+    J, G, H = (fa["rows"][k] for k in ("jaxnh", "jaxnh, first gradient", "hand JAX (diffrax Tsit5)"))
+    if "jaxnh / hand (CPU)" in fr:
+        targets_.append(
+            [
+                "rolling disc: first answer in a fresh process, jaxnh / hand-written diffrax program of SymPy's "
+                "equations",
+                "≤ 1.5×",
+                f"{fr['jaxnh / hand (CPU)']:.2f}× CPU ({fr['jaxnh / hand (wall)']:.2f}× wall)",
+                f"{e(J['error'])} vs {e(H['error'])}",
+                met(fr["jaxnh / hand (CPU)"] <= 1.5),
+            ]
+        )
+    if "gradient / answer (CPU)" in fr:
+        targets_.append(
+            [
+                "rolling disc: first gradient / first answer (fresh processes)",
+                "≤ 2.5×",
+                f"{fr['gradient / answer (CPU)']:.2f}× CPU ({fr['gradient / answer (wall)']:.2f}× wall)",
+                f"gradient {e(G['error'])} (relative)",
+                met(fr["gradient / answer (CPU)"] <= 2.5),
+            ]
+        )
+    L = TT["long"]
+    q_, e_, e6 = (L["rows"][k] for k in ("quaternion", "Euler ZYX, default max_steps", "Euler ZYX, max_steps 10⁶"))
+    targets_.append(
+        [
+            f"ball on a turntable, {L['t_end']:.0f} s at rtol {TT['rtol']:g}: unit quaternion against ZYX Euler angles "
+            "(q̇)",
+            "—",
+            f"steps {q_['steps']:,} vs {e6['steps']:,}; Euler with the default max_steps "
+            + ("completes" if e_["success"] else f"stops at t = {e_['reached']:.0f} s")
+            + f"; centre {e(q_['centre_error'])} vs {e(e6['centre_error'])} m",
+            "closed form",
+            "—",
+        ]
+    )
+    m = R["machine"]
+    out += [
+        "## Speeds and quaternions: the rolling disc and the ball on a turntable",
+        "",
+        f"Measured by `python -m benchmarks.speeds{' --quick' if R.get('quick') else ''}` at revision "
+        f"`{m['revision']}`"
+        + (" with uncommitted changes in jaxnh/" if m["uncommitted"] else "")
+        + f" (source digest `{m['digest']}`), {m['date']}, load average {m['load_average'][0]:.1f} at the end.",
+        "",
+        f"**The rolling disc** (`jaxnh.models.disc_speeds`, the disc of `jaxnh.models.disc`): a wobbling disc, "
+        f"the steady circle at lean {D['lean']:g} rad and yaw rate {D['yaw_rate']:g} rad/s (spin "
+        f"{D['spin']:.2f} rad/s) plus a lean rate of {D['lean_rate']:g} rad/s, {D['t_end']:g} s, "
+        f"{D['n_report']} report times. Every contender integrates in the generalized speeds of SymPy's "
+        "rolling-disc example (u1, u2, u3: the disc's angular velocity in the lean frame). jaxnh: `simulate` with "
+        "the user's defaults but rtol (atol = rtol/100), Lagrange's form (the default; state q and five speeds, "
+        "the slip speeds held at zero by multipliers) and Appell's (state q, u1, u2, u3, as SymPy's). SciPy: "
+        "SymPy's `KanesMethod` (the example's frames and speeds, x and y added as kinematic equations), "
+        "`lambdify(cse=True)` with NumPy, `solve_ivp`. Hand JAX: the same SymPy equations printed as `jax.numpy` "
+        "source, `diffrax.Tsit5`, jitted. Errors: the largest absolute error over the report times of q and "
+        "u1…u3 against SciPy's DOP853 at rtol 1e-13 on SymPy's equations (`jaxnh.models.disc`, in q̇, at rtol "
+        f"1e-12 differs from it by {e(D['reference_check'])}). Matched error: each contender's loosest tolerance "
+        "on a half-decade grid that reaches the target error; CPU time per solve after compilation, medians over "
+        "interleaved rounds.",
+        "",
+    ]
+    for key, blk in st.items():
+        better = blk.get("better_scipy")
+        out += [f"**Target error {blk['target']:.0e}**", ""]
+        body = []
+        for k, r in blk["rows"].items():
+            mine = blk["ratios"].get("SciPy's better / " + ("jaxnh" if k == jx else k))
+            ratio = "1×" if k == better else (f"{mine:.1f}×" if mine is not None else "")
+            body.append(
+                [
+                    k + (" (SciPy's better)" if k == better else ""),
+                    f"{r['rtol']:.1e}" if r["rtol"] else "not reached",
+                    e(r["error"]),
+                    f"{r['steps']:.0f}" if r["steps"] is not None else "—",
+                    t(r["cpu"]),
+                    ratio,
+                ]
+            )
+        out += table(["contender", "rtol", "error", "steps", "CPU per solve", "SciPy's better / this"], body)
+        if "jaxnh / hand JAX" in blk["ratios"]:
+            out += [f"jaxnh (default) / hand JAX: {blk['ratios']['jaxnh / hand JAX']:.2f}×.", ""]
+    fc = D.get("field_cost")
+    if fc:
+        out += [
+            "The equations' own cost, CPU per `diffrax.Tsit5` step at a constant step (1000 steps, jitted, no "
+            "step-size control): "
+            + ", ".join(f"{k} {t(v)}" for k, v in fc.items() if not k.startswith("SciPy"))
+            + "; SciPy's lambdified right-hand side per call (six per step): "
+            + ", ".join(t(v) for k, v in fc.items() if k.startswith("SciPy"))
+            + ".",
+            "",
+        ]
+    rtols = ", ".join(f"{k.split(' (')[0]}: rtol {v:.1e}" for k, v in fa["rtols"].items())
+    out += [
+        f"First answers, fresh processes (every core, the user's settings, no compilation cache), medians of "
+        f"{fa['repeats']}, from before the first import to the answer on the host, at the tolerances matched to "
+        f"the first target ({rtols}). "
+        "The gradient: `jax.grad` of the final coordinates' sum with respect to every parameter (m, r, I1, I3, g); "
+        "its error, relative, along a random direction against a Richardson-extrapolated central difference of "
+        "the reference. SymPy + SciPy includes the derivation and `lambdify`.",
+        "",
+    ]
+    out += table(
+        ["process", "CPU", "wall", "of which the imports (wall)", "error"],
+        [
+            [k, t(v["cpu_median"]), t(v["wall_median"]), t(v.get("imports_median")), e(v["error"])]
+            for k, v in fa["rows"].items()
+        ],
+    )
+    out += [
+        f"**The ball on a turntable** (`jaxnh.models.turntable`, a unit quaternion with angular-velocity speeds) "
+        f"against the same ball in ZYX Euler angles (yaw, pitch, roll) written in q̇ "
+        f"(`benchmarks.speeds.euler_mechanism`), both at rtol {TT['rtol']:g}, atol {TT['atol']:g}, `simulate`'s "
+        "default formulation and solver. Centre: error against `turntable.closed_form` (m); orientation: largest "
+        "Frobenius norm of the difference of the rotation matrices against the quaternion model at rtol "
+        f"{TT['ref_rtol']:g}; both over the times the solve reached. From the issue's state (the identity "
+        f"orientation), {L['t_end']:.0f} s:",
+        "",
+    ]
+
+    def cos_cell(r):
+        if r.get("min_cos_pitch") is None:
+            return "—"
+        return f"{np.degrees(np.arccos(r['min_cos_pitch'])):.2f}° at t = {r['at']:.0f} s"
+
+    out += table(
+        [
+            "model",
+            "outcome",
+            "reached",
+            "steps (accepted)",
+            "centre error",
+            "orientation error",
+            "pitch closest to ±90°",
+            "CPU",
+        ],
+        [
+            [
+                k,
+                "success" if r["success"] else r["message"][:60],
+                f"{r['reached']:.0f} s",
+                f"{r['steps']:,} ({r['accepted']:,})",
+                e(r["centre_error"]),
+                e(r["orientation_error"]),
+                cos_cell(r),
+                t(r.get("cpu")),
+            ]
+            for k, r in L["rows"].items()
+        ],
+    )
+    N = TT["near_lock"]
+    out += [
+        f"Starts near gimbal lock: the same state with the ball turned by π/2 − δ about y (pitch π/2 − δ), "
+        f"{N['t_end']:.0f} s, `simulate`'s default max_steps:",
+        "",
+    ]
+    body = []
+    for r in N["rows"].values():
+        qn, eu = r["quaternion"], r["euler"]
+        body.append(
+            [
+                f"{r['delta']:g}",
+                f"{qn['steps']:,}, {e(qn['centre_error'])}, {e(qn['orientation_error'])}",
+                ("success" if eu["success"] else eu["message"][:60]) + f" (reached {eu['reached']:.0f} s)",
+                f"{eu['steps']:,}, {e(eu['centre_error'])}, {e(eu['orientation_error'])}",
+            ]
+        )
+    out += table(
+        [
+            "δ (rad)",
+            "quaternion: steps, centre error, orientation error",
+            "Euler: outcome",
+            "Euler: steps, centre error, orientation error",
+        ],
+        body,
+    )
+    return targets_, out
+
+
 def _interp(points, err):
     """Time at `err` on a sorted (error, time) curve by log-log interpolation, None outside it."""
     pts = [(a, b) for a, b in points if a > 0 and np.isfinite(a)]
@@ -560,6 +763,7 @@ def main():
         ("first_answer", first_answer),
         ("precision", precision),
         ("friction", friction),
+        ("speeds", speeds),
     )
     for name, fn in studies:
         if name in results:

@@ -18,6 +18,10 @@ Studies (each in its own process; one failure does not stop the rest):
 * precision — work–precision of the rolling ball, Appell against Lagrange.
 * friction — what friction-held contacts cost: a scene without them, and
   solves with 0, 1 and 2 transitions.
+* speeds — speeds and quaternions: the rolling disc in Kane's speeds against
+  SymPy's KanesMethod with SciPy and a hand-written diffrax program (steady
+  solves at matched error, first answers, first gradient); the ball on a
+  turntable in a quaternion against Euler angles.
 
 Not run here: studies that write their own report beside RESULTS.md (each run as
 `python -m benchmarks.<name>`, with a `--quick` smoke run written to
@@ -37,7 +41,7 @@ import time
 from . import common as C
 
 
-STUDIES = ["headline", "size", "first_answer", "precision", "friction"]
+STUDIES = ["headline", "size", "first_answer", "precision", "friction", "speeds"]
 EXTRA = ["reliability"]  # writes RELIABILITY.md itself
 
 
