@@ -262,3 +262,24 @@ def test_time_dependent_kinematics():
     assert float(jnp.max(jnp.abs(sol.q[:, 0] - 2.0 * ts))) <= 1e2 * 1e-10 * 20
     assert float(jnp.max(jnp.abs(sol.qd[:, 0] - 2.0))) <= 1e2 * 1e-10 * 2
     np.testing.assert_allclose(sol.u[:, 0], 2.0 * _scale(ts), rtol=1e2 * 1e-10)
+
+
+def _sleigh_T(q, u, t, p):
+    return 0.5 * (u[0] ** 2 + 0.25 * u[1] ** 2) + 0.05 * u[1] ** 2
+
+
+def _sleigh_rate(q, u, t, p):
+    return jnp.stack([u[0] * jnp.cos(q[2]), u[0] * jnp.sin(q[2]), u[1]])
+
+
+def test_a_constraint_hidden_in_the_kinematics_is_refused():
+    """The Chaplygin sleigh with its knife edge written into q̇ = K u (2 speeds for 3 coordinates):
+    the commutator of the fields leaves their span, so T in the speeds does not determine the
+    motion (started turning at rest, the sleigh must speed up, v̇ = a ω²; the dropped Hamel term
+    would keep v at 0). Refused with STATUS.speeds_incomplete, never integrated."""
+    mech = nh.Mechanism(_sleigh_T, kinematics=_sleigh_rate)
+    sol = nh.simulate(mech, {}, jnp.zeros(3), jnp.array([0.0, 1.0]), jnp.linspace(0.0, 1.0, 3), throw=False)
+    assert sol.status == nh.STATUS.speeds_incomplete
+    assert bool(jnp.all(jnp.isnan(sol.u)))
+    with pytest.raises(nh.SimulationError, match="kinematics"):
+        nh.simulate(mech, {}, jnp.zeros(3), jnp.array([0.0, 1.0]), jnp.linspace(0.0, 1.0, 3))

@@ -256,6 +256,16 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "Raise max_steps, or raise dtmax or give fewer step_ts. sol.stats['stopped_at'] is the time the "
         "solve stopped."
     )
+    speeds_incomplete = (
+        "The mechanism's `kinematics` forbid velocities its coordinates have: the speeds' fields K_j "
+        "(the columns of ∂q̇/∂u) do not close on themselves (a commutator of two of them leaves their "
+        "span), which is a nonholonomic constraint written into q̇ = K u, e.g. a rolling or knife-edge "
+        "condition. T in the speeds then does not determine the motion (the equations need T's "
+        "derivatives along the forbidden velocities). Choose speeds that give every velocity of the "
+        "coordinates (as many independent speeds as the coordinates have degrees of freedom; for a unit "
+        "quaternion, three angular-velocity components) and write the constraint as `constraints=` in "
+        "them (see jaxnh.models.disc_speeds)."
+    )
     quaternion_not_unit = (
         "A group of q0 named in the mechanism's `quaternions` is not a unit quaternion: its norm differs "
         "from 1 by more than √eps. A rotation is a unit quaternion (w, x, y, z); divide the group by its "
@@ -310,6 +320,7 @@ INPUT_FAILURES = (
     "friction_values_invalid",
     "acceleration_energy_mismatch",
     "quaternion_not_unit",
+    "speeds_incomplete",
 )
 
 

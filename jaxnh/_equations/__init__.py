@@ -15,12 +15,14 @@ import jax.core
 import jax.numpy as jnp
 
 from jaxnh._base.host import as_data, as_float, as_time
+from jaxnh._base.status import describe, STATUS
 from jaxnh._base.types import ArrayInput, PyTree
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.base import Formulation, multipliers_from_accelerations
 from jaxnh._equations.lagrange import Lagrange
 from jaxnh._equations.split import choose_independent, VelocitySplit
 from jaxnh._equations.substituted import Substituted
+from jaxnh._equations.terms import speeds_span_velocities
 from jaxnh._model.mechanism import Mechanism
 
 
@@ -129,6 +131,9 @@ def accelerations(
     # concrete input: non-finite values or a mass matrix that is not positive
     # definite raise here instead of returning NaN (qd need not be consistent)
     mech.check_values(q, qd, t, params, constraint_rtol=float("inf"))
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in [q, qd, t] + jax.tree_util.tree_leaves(params))
+    if mech.kinematics is not None and concrete and not bool(speeds_span_velocities(mech, q, qd, t, params)):
+        raise ValueError(f"kinematics: {describe(STATUS.speeds_incomplete)[len('solve failed: ') :]}")
     if isinstance(form, Appell) and form.independent is not None and form.m:
         leaves = [q, qd, t] + jax.tree_util.tree_leaves(params)
         if not any(isinstance(x, jax.core.Tracer) for x in leaves) and not bool(_split_ok(form, q, qd, t, params)):

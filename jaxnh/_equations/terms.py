@@ -95,8 +95,15 @@ def speed_terms(mech, q, u, t, params):
 
     K, Kdot = jax.jvp(kmat, (q, t), (r.astype(q.dtype), jnp.ones_like(t)))
     JK = jax.vmap(lambda d: jax.jvp(lambda q_: rate(q_, u, t), (q,), (d,))[1], in_axes=1, out_axes=1)(K)
-    gamma = solve_spd(mm(K.T, K), mm(K.T, JK - Kdot))
+    V = JK - Kdot
+    gamma = solve_spd(mm(K.T, K), mm(K.T, V))
     h = dp - mm(K.T, dTdq.astype(dtype)) + mm(gamma.T, p)
+    # V outside the span of K (a nonholonomic constraint written into q̇ = K u, `speeds_span_velocities`)
+    # meets a part of ∂T/∂q̇ that T in the speeds does not give: no answer, NaN (never a wrong one)
+    eps = jnp.finfo(dtype).eps
+    off = jnp.sqrt(jnp.sum((V - mm(K, gamma)) ** 2, axis=0))
+    allowed = jnp.sqrt(eps) * jnp.sqrt(jnp.sum(V**2, axis=0)) + 64 * eps * jnp.sqrt(jnp.sum(JK**2 + Kdot**2, axis=0))
+    h = jnp.where(jnp.all(off <= allowed), h, jnp.nan)
     return Mt.T, h
 
 
@@ -137,3 +144,47 @@ def constraint_terms(mech, q, qd, t, params):
     rate = mech.rate(q, qd, t, params) if mech.kinematics is not None else None
     _, At, b = _along(c, q, qd, t, jnp.eye(qd.shape[0], dtype=qd.dtype), rate)
     return At.T, b
+
+
+def speeds_span_velocities(mech, q, u, t, params) -> jax.Array:
+    """Whether the speeds' fields K_j (the columns of K = ∂q̇/∂u) close on themselves: each
+    commutator (∂K_k/∂q) K_j − (∂K_j/∂q) K_k, and each drift term (∂k/∂q) K_j − (∂K_j/∂q) k − ∂K_j/∂t
+    (k = q̇ at u = 0), lies in the span of K, to √eps of its size (a bool at (q, t); u gives only the
+    number of speeds).
+
+    It holds for speeds that parameterise every velocity of the configuration (angles with rates of
+    their own, a unit quaternion with an angular velocity: its fields are tangent to the sphere), and
+    `speed_terms` is then exact. It fails where `kinematics` itself forbids velocities the
+    configuration has, a nonholonomic constraint written into q̇ = K u (a rolling condition, a knife
+    edge): T in the speeds then does not determine the motion (Hamel's terms need ∂T/∂q̇ off the
+    allowed velocities), and such a constraint belongs in `constraints`, written in speeds that span
+    every velocity.
+    """
+    dtype = q.dtype
+    t = jnp.asarray(t, dtype)
+    zero = jnp.zeros(u.shape, dtype)
+
+    def rate(q_, t_):
+        return mech.rate(q_, zero, t_, params).astype(dtype)
+
+    def kmat(q_, t_):
+        return jax.jacfwd(lambda v: mech.rate(q_, v, t_, params).astype(dtype))(zero)
+
+    K, k0 = kmat(q, t), rate(q, t)
+    dK, dKt = jax.jacfwd(kmat, argnums=(0, 1))(q, t)  # (nq, nu, nq): ∂K_aj/∂q_i; (nq, nu)
+    dk0 = jax.jacfwd(rate)(q, t)  # (nq, nq)
+    nq = q.shape[0]
+    DKK = jnp.einsum("aki,ij->ajk", dK, K)  # [a, j, k] = ((∂K_k/∂q) K_j)_a
+    commutators = (DKK - jnp.swapaxes(DKK, 1, 2)).reshape(nq, -1)
+    commutator_terms = (jnp.abs(DKK) + jnp.abs(jnp.swapaxes(DKK, 1, 2))).reshape(nq, -1)
+    a, b = dk0 @ K, jnp.einsum("aji,i->aj", dK, k0)
+    drifts = a - b - dKt
+    drift_terms = jnp.abs(a) + jnp.abs(b) + jnp.abs(dKt)
+    vecs = jnp.concatenate([commutators, drifts], axis=1)
+    terms = jnp.concatenate([commutator_terms, drift_terms], axis=1)
+    residual = vecs - mm(K, solve_spd(mm(K.T, K), mm(K.T, vecs)))
+    eps = jnp.finfo(dtype).eps
+    # rounding: a commutator that is exactly 0 comes out as the difference of two equal products
+    floor = 64 * eps * jnp.sqrt(jnp.sum(terms**2, axis=0))
+    ok = jnp.sqrt(jnp.sum(residual**2, axis=0)) <= jnp.sqrt(eps) * jnp.sqrt(jnp.sum(vecs**2, axis=0)) + floor
+    return jnp.all(ok | ~jnp.isfinite(jnp.sum(residual**2, axis=0)))

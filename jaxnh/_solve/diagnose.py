@@ -27,7 +27,7 @@ from jaxnh._base.linalg import pick, value_and_jacfwd
 from jaxnh._base.status import STATUS
 from jaxnh._equations.appell import Appell
 from jaxnh._equations.split import best_block_margin, partition_quality
-from jaxnh._equations.terms import mass_and_velocity_terms
+from jaxnh._equations.terms import mass_and_velocity_terms, speeds_span_velocities
 from jaxnh._model.checks import constraint_row_checks, mass_matrix_check
 
 
@@ -155,6 +155,12 @@ def initial_checks(form, q, qd, t, params):
         )
         status = STATUS.where(ok & ~unit, STATUS.quaternion_not_unit, status)
         ok = ok & unit
+    if mech.kinematics is not None:  # the speeds give every velocity (no constraint hidden in q̇ = K u),
+        # at q0 and at a second configuration (a commutator may vanish at one point by accident)
+        shifted = q + 0.1 * (1 + jnp.abs(q)) * jnp.linspace(0.5, 1.0, q.shape[0], dtype=q.dtype)
+        spans = speeds_span_velocities(mech, q, qd, t, params) & speeds_span_velocities(mech, shifted, qd, t, params)
+        status = STATUS.where(ok & ~spans, STATUS.speeds_incomplete, status)
+        ok = ok & spans
     if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
         on = holonomic_consistent(mech, q, t, params)
         status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)
