@@ -248,7 +248,7 @@ def test_solution_to_dataframe_single_and_batched():
     np.testing.assert_array_equal(df.loc[4, "phi1"].to_numpy(), np.arange(5) + 100.0)
     np.testing.assert_array_equal(df.loc[3, "phi1_dot"].to_numpy(), sol.qd[1, 0, :, 0])
     sol.speeds = np.full((2, 3, 5, 1), 7.0)  # a mechanism with `kinematics`: the speeds as u_<i>
-    assert (solution_to_dataframe(sol)["u_0"] == 7.0).all()
+    assert np.all(solution_to_dataframe(sol)["u_0"].to_numpy() == 7.0)
     assert isinstance(df, pd.DataFrame)
     with pytest.raises(ValueError, match="must be"):
         solution_to_dataframe(types.SimpleNamespace(q=np.zeros(3), qd=np.zeros(3), ts=np.zeros(3)))
