@@ -23,6 +23,13 @@ Every call made here ends in one of five outcomes:
 Compilation dominates the cost, so each family is ONE mechanism whose every
 number is a traced parameter: cases vary values, never the structure, and
 reuse the compiled programs.
+
+Speeds (issue 44) are a factor of the shafts family's value classes: the same
+mechanism written in speeds u = S(q) q̇ (`SHAFTS_SPEEDS`, `speeds_cases`, S
+invertible, state-dependent, its parameters traced), whose motion (q, q̇) is
+the family's and is judged by the same reference; the returned speeds must be
+S(q) q̇ of it, and linearisations (state (q, u[speeds])) are judged against the
+reference's reduced field mapped to speeds, u̇ = S q̈ + Ṡ q̇.
 """
 
 from __future__ import annotations
@@ -289,8 +296,94 @@ class LockedModel:
         return np.zeros(2)
 
 
-MODELS = {"shafts": ShaftsModel, "locked": LockedModel}
-MECHS = {"shafts": SHAFTS, "locked": LOCKED}
+# =====================================================================================
+# The shafts family in speeds (issue 44): u = S(q) q̇
+# =====================================================================================
+#
+# The same mechanism written in speeds u = S(q) q̇, with
+#   S(q) = diag(1 + sa1 sin² phi1, 1 + sa2 sin² phi2, 1 + sa3 sin² phi3) + se W(q),
+#   W(q) = [[0, sin phi3, 0], [−sin phi3, 0, sin phi1], [0, −sin phi1, 0]]   (skew),
+# every number a traced parameter. T, c and Q are the family's at q̇ = S⁻¹u (Q conjugate to u is
+# S⁻ᵀ Q_q̇), so the motion (q, q̇) is the family's for u0 = S(q0) q̇0, whatever S, and the same
+# reference judges it. S is invertible for every q (its symmetric part is diag(1 + sa_i sin²) ≥ I,
+# so |S⁻¹| ≤ 1) and bounded (|S| ≤ 1 + max sa + 2|se|), so the step control's error in u and in q̇
+# are within a factor of a few of each other. The skew part depends on q so that the speeds are not
+# the rates of any coordinates (∂S_01/∂phi3 = se cos phi3 ≠ ∂S_02/∂phi2 = 0): Hamel's transpositional
+# terms are nonzero. (A constant skew coupling, or the diagonal alone, would leave u = d/dt F(q), true
+# coordinates' rates, whose transpositional terms vanish; tests/test_fuzz.py checks the terms' size.)
+
+SPEEDS_KEYS = ("sa1", "sa2", "sa3", "se")
+THETA_SPEEDS = THETA + ("se",)
+"""The parameters differentiated in the speeds variant's gradient checks: THETA and the skew coupling
+se, on which the motion (q, q̇) does not depend (its exact derivative is zero: Hamel's terms and the
+rest of the speeds' equations must cancel to the tolerance)."""
+
+
+def speeds_matrix(q, p, xp=jnp):
+    """S(q) (3, 3) of the speeds u = S(q) q̇ (complex q carries a complex step through it)."""
+    s0, s1, s2 = xp.sin(q[0]), xp.sin(q[1]), xp.sin(q[2])
+    e, z = p["se"], 0.0 * s0
+    return xp.stack(
+        [
+            xp.stack([1.0 + p["sa1"] * s0**2, e * s2, z]),
+            xp.stack([-e * s2, 1.0 + p["sa2"] * s1**2, e * s0]),
+            xp.stack([z, -e * s0, 1.0 + p["sa3"] * s2**2]),
+        ]
+    )
+
+
+def speeds_matrix_derivative(q, p):
+    """∂S_ij/∂q_k (3, 3, 3) by hand (NumPy; for the reference)."""
+    q = np.asarray(q)
+    d = np.zeros((3, 3, 3), dtype=np.result_type(q, float))
+    for i, a in enumerate(("sa1", "sa2", "sa3")):
+        d[i, i, i] = p[a] * np.sin(2 * q[i])
+    e = p["se"]
+    d[0, 1, 2], d[1, 0, 2] = e * np.cos(q[2]), -e * np.cos(q[2])
+    d[1, 2, 0], d[2, 1, 0] = e * np.cos(q[0]), -e * np.cos(q[0])
+    return d
+
+
+def _shafts_rates(q, u, p):
+    return jnp.linalg.solve(speeds_matrix(q, p), u)
+
+
+def speeds_kinematics(q, u, t, p):
+    return _shafts_rates(q, u, p)
+
+
+def speeds_kinetic(q, u, t, p):
+    return shafts_kinetic(q, _shafts_rates(q, u, p), t, p)
+
+
+def speeds_constraint(q, u, t, p):
+    return shafts_constraint(q, _shafts_rates(q, u, p), t, p)
+
+
+def speeds_forces(q, u, t, p):
+    S = speeds_matrix(q, p)
+    return jnp.linalg.solve(S.T, shafts_forces(q, jnp.linalg.solve(S, u), t, p))
+
+
+SHAFTS_SPEEDS = nh.Mechanism(
+    speeds_kinetic,
+    kinematics=speeds_kinematics,
+    constraints=speeds_constraint,
+    forces=speeds_forces,
+    names=("phi1", "phi2", "phi3"),
+)
+
+
+def speeds_of(q, qd, p):
+    """u = S(q) q̇ (NumPy; rows of q and q̇ for a motion)."""
+    q, qd = np.asarray(q), np.asarray(qd)
+    if q.ndim == 2:
+        return np.stack([speeds_of(a, b, p) for a, b in zip(q, qd)])
+    return speeds_matrix(q, p, np) @ qd
+
+
+MODELS = {"shafts": ShaftsModel, "locked": LockedModel, "speeds": ShaftsModel}
+MECHS = {"shafts": SHAFTS, "locked": LOCKED, "speeds": SHAFTS_SPEEDS}
 
 
 # =====================================================================================
@@ -391,16 +484,22 @@ def ref_reduced_field(model, p, q, v, t, speeds, start=None):
     return qd, ref_accelerations(model, q, qd, t, p, solve=np.linalg.solve)[list(speeds)]
 
 
-def ref_linearization(model, p, q, qd, t, speeds, h: float = 1e-30, at_qd: bool = False):
+def ref_linearization(model, p, q, qd, t, speeds, h: float = 1e-30, at_qd: bool = False, field=None):
     """The state matrix for x = (q, v) by complex-step differentiation of the reference's reduced
     field, ∂g/∂x_j = Im g(x + i h e_j) / h: exact to rounding (no difference is taken). at_qd:
-    the dependent velocities are solved from qd's own (on qd's root of a nonlinear constraint)."""
+    the dependent velocities are solved from qd's own (on qd's root of a nonlinear constraint).
+    `field(q, v, start) -> (q̇, v̇)` replaces `ref_reduced_field` (the family in speeds: qd holds
+    the speeds u and v the independent ones)."""
     s = model.s
     x0 = np.concatenate([np.asarray(q, float), np.asarray(qd, float)[list(speeds)]])
     start = np.asarray(qd, float) if at_qd else None
+    if field is None:
+
+        def field(q_, v_, start_):
+            return ref_reduced_field(model, p, q_, v_, t, speeds, start_)
 
     def g(x):
-        qd_, vd = ref_reduced_field(model, p, x[:s], x[s:], t, speeds, start)
+        qd_, vd = field(x[:s], x[s:], start)
         return np.concatenate([qd_, vd])
 
     cols = []
@@ -409,6 +508,75 @@ def ref_linearization(model, p, q, qd, t, speeds, h: float = 1e-30, at_qd: bool 
         x[j] += 1j * h
         cols.append(np.imag(g(x)) / h)
     return np.stack(cols, axis=1)
+
+
+def ref_speeds_rate(p, q, qd, qdd):
+    """u̇ = S(q) q̈ + Ṡ q̇, Ṡ = Σ_k ∂S/∂q_k q̇_k: the speeds' rate along a motion (complex-step safe)."""
+    return speeds_matrix(q, p, np) @ qdd + (speeds_matrix_derivative(q, p) @ qd) @ qd
+
+
+def ref_reduced_field_speeds(p, q, v, t, speeds, start=None):
+    """(q̇, v̇) of the reduced state (q, v = u[speeds]) of the family in speeds: the dependent speeds
+    by Newton's method on c(q, S⁻¹u) = 0 from `start` (the speeds, default zero), q̇ = S⁻¹u, q̈ from
+    the family's KKT equations (`ref_accelerations`), and u̇ = S q̈ + Ṡ q̇ (`ref_speeds_rate`)."""
+    s = 3
+    dep = [i for i in range(s) if i not in speeds]
+    S = speeds_matrix(q, p, np)
+    u = np.zeros(s, dtype=np.result_type(q, v, S))
+    if start is not None:
+        u[dep] = np.asarray(start, float)[dep]
+    u[list(speeds)] = v
+    for _ in range(8):  # Newton on the dependent speeds (one step for linear constraints)
+        qd = np.linalg.solve(S, u)
+        A_u = np.linalg.solve(S.T, ShaftsModel.jac(q, qd, t, p).T).T  # ∂c/∂u = A S⁻¹
+        u[dep] -= np.linalg.solve(A_u[:, dep], ShaftsModel.value(q, qd, t, p))
+    qd = np.linalg.solve(S, u)
+    qdd = ref_accelerations(ShaftsModel, q, qd, t, p, solve=np.linalg.solve)
+    return qd, ref_speeds_rate(p, q, qd, qdd)[list(speeds)]
+
+
+def ref_motion_speeds(p, q0, u0, ts, hamel: float = 0.0, rtol: float = 1e-12):
+    """(q, q̇, u) at ts of the family in speeds integrated in (q, u) by SciPy (DOP853), u̇ from the
+    reference's q̈ as in `ref_speeds_rate`; None if the integration failed. For the oracle's checks
+    only: `hamel` ≠ 0 adds that multiple of Hamel's transpositional terms τ (`ref_hamel_terms`) to the
+    equations in speeds (−1: the terms left out, +1: counted twice), u̇ + δ with
+    `[[M_u, −A_uᵀ], [A_u, 0]] (δ, ·) = (−hamel τ, 0)`, M_u = S⁻ᵀ M S⁻¹, A_u = A S⁻¹."""
+    ts = np.asarray(ts, float)
+
+    def f(t, y):
+        q, u = y[:3], y[3:]
+        S = speeds_matrix(q, p, np)
+        qd = np.linalg.solve(S, u)
+        ud = ref_speeds_rate(p, q, qd, ref_accelerations(ShaftsModel, q, qd, t, p, solve=np.linalg.solve))
+        if hamel:
+            K = np.linalg.inv(S)
+            M_u, A_u = K.T @ ShaftsModel.mass(q, t, p) @ K, ShaftsModel.jac(q, qd, t, p) @ K
+            kkt = np.block([[M_u, -A_u.T], [A_u, np.zeros((1, 1))]])
+            rhs = np.concatenate([-hamel * ref_hamel_terms(p, q, u, t), np.zeros(1)])
+            ud = ud + np.linalg.solve(kkt, rhs)[:3]
+        return np.concatenate([qd, ud])
+
+    y0 = np.concatenate([np.asarray(q0, float), np.asarray(u0, float)])
+    scale = np.max(np.abs(y0)) + np.max(np.abs(f(ts[0], y0))) * (ts[-1] - ts[0]) + 1e-300
+    sol = solve_ivp(f, (ts[0], ts[-1]), y0, method="DOP853", t_eval=ts, rtol=rtol, atol=rtol * 1e-3 * scale)
+    if sol.status != 0 or sol.y.shape[1] != ts.shape[0] or not np.all(np.isfinite(sol.y)):
+        return None
+    q, u = sol.y[:3].T, sol.y[3:].T
+    return q, np.stack([np.linalg.solve(speeds_matrix(a, p, np), b) for a, b in zip(q, u)]), u
+
+
+def ref_hamel_terms(p, q, u, t):
+    """Hamel's transpositional terms τ_r = Σ_{k,s} γ^k_rs p_k u_s of the family in speeds, with
+    p = ∂T/∂u = S⁻ᵀ M q̇ and the Hamel coefficients
+    γ^k_rs = Σ_{l,m} (∂S_kl/∂q_m − ∂S_km/∂q_l) K_lr K_ms, K = S⁻¹ (zero when u are the rates of
+    coordinates, ∂S_kl/∂q_m = ∂S_km/∂q_l). The Boltzmann–Hamel equations
+    d/dt ∂T/∂u − Kᵀ ∂T/∂q + τ = Kᵀ (d/dt ∂T/∂q̇ − ∂T/∂q) hold identically (tests/test_fuzz.py)."""
+    K = np.linalg.inv(speeds_matrix(q, p, np))
+    dS = speeds_matrix_derivative(q, p)
+    curl = dS - np.swapaxes(dS, 1, 2)  # [k, l, m] = ∂S_kl/∂q_m − ∂S_km/∂q_l
+    gamma = np.einsum("klm,lr,ms->krs", curl, K, K)
+    mom = K.T @ ShaftsModel.mass(q, t, p) @ (K @ u)
+    return np.einsum("krs,k,s->r", gamma, mom, u)
 
 
 # =====================================================================================
@@ -424,7 +592,10 @@ class Case:
     without one, a success is silent wrong. `names`: regex an error message
     must match to be a clear error (the argument or function at fault).
     `known`: the name of a known library issue this case exposes (the tests
-    mark those xfail; the report lists them).
+    mark those xfail; the report lists them). Family "speeds": the shafts
+    family written in the speeds u = S(q) q̇ (`in_speeds`); `qd0` is still
+    q̇(t0), which the reference starts from, and the call is given
+    `velocities()`, u0 = S(q0) q̇0.
     """
 
     cls: str
@@ -446,6 +617,16 @@ class Case:
     w0: float = 0.0
     v3: float = 0.0
     delta: Any = None
+    u0: Any = None  # family "speeds": the initial speeds given, when not S(q0) qd0
+
+    def velocities(self):
+        """The initial velocities the call is given: qd0, or u0 = S(q0) qd0 in the speeds family."""
+        if self.family != "speeds":
+            return self.qd0
+        if self.u0 is not None:
+            return self.u0
+        with np.errstate(all="ignore"):  # (non-finite inputs give non-finite speeds)
+            return speeds_of(np.asarray(self.q0, float), np.asarray(self.qd0, float), self.params)
 
     def reference(self):
         """(q, q̇) of the right answer, or None when there is none."""
@@ -667,6 +848,51 @@ def value_cases(draw, cls=None):
         what = "a repeated time, two swapped, or all reversed"
     theta, rest = split(p)
     return value_case(cls, theta, rest, w0, v3, delta, q0, ts, what=what, valid=valid, known=known)
+
+
+# --- the value classes in speeds (issue 44) ----------------------------------------------
+
+
+@st.composite
+def speeds_params(draw):
+    """S(q)'s parameters: sa_i in [0, 1] (the diagonal 1 + sa_i sin² q_i), skew coupling |se| in [0.1, 0.5]."""
+    return dict(
+        sa1=draw(st.floats(0.0, 1.0)),
+        sa2=draw(st.floats(0.0, 1.0)),
+        sa3=draw(st.floats(0.0, 1.0)),
+        se=draw(signed(0.1, 0.5)),
+    )
+
+
+def in_speeds(case: Case, sp: dict) -> Case:
+    """A shafts value case written in the speeds u = S(q) q̇ (family "speeds"): the same motion and
+    reference, S's parameters `sp` added to the parameters (se among the differentiated ones)."""
+    sp = {k: float(v) for k, v in sp.items()}
+    return dataclasses.replace(
+        case,
+        family="speeds",
+        params={**case.params, **sp},
+        theta={**case.theta, "se": sp["se"]},
+        rest={**case.rest, **{k: v for k, v in sp.items() if k != "se"}},
+    )
+
+
+@st.composite
+def speeds_cases(draw, cls=None):
+    """One case of a value class (drawn when cls is None) in the speeds u = S(q) q̇. For the class
+    "non-finite value", one draw in three puts the NaN or ±inf into a parameter of S instead (a
+    parameter the kinematics alone use), on an otherwise valid case whose u0 is finite (S(q0) q̇0 with
+    the parameter's finite value; the batched program computes u0 from the parameters, NaN too)."""
+    cls = draw(st.sampled_from(VALUE_CLASSES)) if cls is None else cls
+    sp = draw(speeds_params())
+    if cls == "non-finite value" and draw(st.sampled_from([True, False, False])):
+        case = in_speeds(draw(value_cases("valid")), sp)
+        u0 = case.velocities()
+        sp[draw(st.sampled_from(SPEEDS_KEYS))] = draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+        return dataclasses.replace(
+            in_speeds(case, sp), cls=cls, valid=False, u0=u0, what="NaN or ±inf in one parameter of S(q), u0 finite"
+        )
+    return in_speeds(draw(value_cases(cls)), sp)
 
 
 # --- structural and option classes (eager and jit only: errors before any compile) -------
@@ -905,14 +1131,37 @@ def _status_code(sol) -> int:
     return int(np.asarray(sol.status._value))
 
 
-def judge_solution(case: Case, q, qd, code: int, message: str, ref=None) -> Outcome:
-    """The outcome of a returned solution (one case)."""
+SPEEDS_RTOL = 1e-12
+"""The returned speeds u agree with the returned motion, u = S(q) q̇ at every report, to SPEEDS_RTOL of
+max |u| (q̇ is the kinematics' S(q)⁻¹u of the returned u: the two differ by the rounding of a 3×3 solve,
+≤ cond(S) eps ≈ 1e-15 relative). With (q, q̇) right to the reference's tolerance, u is then right."""
+
+
+def speeds_error(case, q, qd, u) -> float:
+    """Largest |u − S(q) q̇| over the run, in units of SPEEDS_RTOL × max |u| (≤ 1 is right)."""
+    with np.errstate(all="ignore"):
+        expected = speeds_of(np.asarray(q, float), np.asarray(qd, float), case.params)
+        scale = SPEEDS_RTOL * np.max(np.abs(expected)) + np.finfo(float).tiny
+        return float(np.nan_to_num(np.max(np.abs(np.asarray(u) - expected)) / scale, nan=np.inf))
+
+
+def judge_solution(case: Case, q, qd, code: int, message: str, ref=None, u=None) -> Outcome:
+    """The outcome of a returned solution (one case). `u`: the returned speeds (family "speeds"),
+    judged as S(q) q̇ of the returned motion (and non-finite with a failure status, as q and q̇)."""
+    speeds = getattr(case, "family", None) == "speeds"
+    if speeds and u is None:
+        raise ValueError("judge_solution: a case in speeds needs the returned speeds u")
     if code != 0:
         if not message or message == "success":
             return Outcome(SILENT_WRONG, f"failure code {code} without a message")
-        if np.all(np.isfinite(np.asarray(q)[-1])) and np.all(np.isfinite(np.asarray(qd)[-1])):
+        finals = (q, qd, u) if speeds else (q, qd)
+        if any(np.all(np.isfinite(np.asarray(x)[-1])) for x in finals):
             return Outcome(SILENT_WRONG, f"failure status but finite final values: {message[:80]}")
         return Outcome(FAILURE, message[:100])
+    if speeds:
+        mismatch = speeds_error(case, q, qd, u)
+        if not mismatch <= 1.0:
+            return Outcome(SILENT_WRONG, f"success but the speeds u are off S(q) q̇ by {mismatch:.3g} × the allowed")
     if not case.valid:
         return Outcome(SILENT_WRONG, "success on an input that has no right answer")
     ref = case.reference() if ref is None else ref
@@ -944,13 +1193,14 @@ def run_eager(case: Case) -> Outcome:
     """`simulate` called eagerly: throw=False gives the status; a failure must also raise with throw=True."""
     mech = case.mech or MECHS[case.family]
     p = _params_for_call(case.params)
+    v0 = case.velocities()
     try:
-        sol = nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=False, **case.kw)
+        sol = nh.simulate(mech, p, case.q0, v0, case.ts, throw=False, **case.kw)
     except Exception as e:  # noqa: BLE001 - every exception is judged
         return judge_error(case, e)
     code = _status_code(sol)
-    out = judge_solution(case, sol.q, sol.qd, code, sol.message)
-    return throw_agrees(lambda: nh.simulate(mech, p, case.q0, case.qd0, case.ts, throw=True, **case.kw), code) or out
+    out = judge_solution(case, sol.q, sol.qd, code, sol.message, u=sol.u)
+    return throw_agrees(lambda: nh.simulate(mech, p, case.q0, v0, case.ts, throw=True, **case.kw), code) or out
 
 
 def throw_agrees(call, code: int) -> Optional[Outcome]:
@@ -979,7 +1229,7 @@ def _jitted(family):
 
         def f(p, q0, qd0, ts):
             sol = nh.simulate(mech, p, q0, qd0, ts, throw=True)
-            return sol.q, sol.qd
+            return sol.q, sol.qd, sol.u
 
         _JITTED[family] = jax.jit(f)
     return _JITTED[family]
@@ -995,20 +1245,20 @@ def run_jit(case: Case) -> Outcome:
 
         def f(p, q0, qd0, ts):
             sol = nh.simulate(mech, p, q0, qd0, ts, throw=True, **case.kw)
-            return sol.q, sol.qd
+            return sol.q, sol.qd, sol.u
 
         fn = jax.jit(f)
     else:
         fn = _jitted(case.family)
     try:
-        q, qd = fn(_params_for_call(case.params), case.q0, case.qd0, case.ts)
-        q, qd = np.asarray(q), np.asarray(qd)
+        q, qd, u = fn(_params_for_call(case.params), case.q0, case.velocities(), case.ts)
+        q, qd, u = np.asarray(q), np.asarray(qd), np.asarray(u)
     except Exception as e:  # noqa: BLE001
         text = str(e)
         if any(m[:60] in text for m in STATUS_MESSAGES):
             return Outcome(FAILURE, "in-graph error: " + next(m for m in STATUS_MESSAGES if m[:60] in text)[:80])
         return judge_error(case, e)
-    return judge_solution(case, q, qd, 0, "success")
+    return judge_solution(case, q, qd, 0, "success", u=u)
 
 
 # --- vmap ∘ value_and_grad over value cases -------------------------------------------------
@@ -1024,6 +1274,36 @@ def _loss(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
 
 VALUE_AND_GRAD = jax.jit(jax.vmap(jax.value_and_grad(_loss, has_aux=True)))
 """One compiled program: value and gradient with respect to THETA, batched over BATCH cases."""
+
+
+SPEEDS_BATCH_MAX_STEPS = 1000
+"""max_steps of the batched program in speeds. Under vmap every member takes as many steps as the
+slowest one, and a step of this program (ten members, three forward sensitivities) took 75 ms on a
+loaded 2-core machine: a nearly singular mass matrix (class "singular mass matrix", δ > 0) needs
+~9e4 steps in speeds, and the exactly singular one that passes the initial check in speeds (see
+tests/test_fuzz.py) runs to max_steps, so the default 100 000 would hold a batch for two hours. A
+member that reaches this limit ends with a failure status (judged as such: NaN values and gradient);
+the classes that must be right need at most a few hundred steps."""
+
+
+def _loss_speeds(theta, rest, w0, v3, delta, q0, ts, wq, wqd):
+    """`_loss` for the family in speeds: the same start q̇0, given as u0 = S(q0) q̇0 (traced), and the
+    same scalar of (q, q̇) at the end."""
+    p = {**rest, **theta}
+    qd0 = shafts_qd0(p, w0, v3, ts[0]) + delta
+    u0 = speeds_matrix(q0, p) @ qd0
+    sol = nh.simulate(SHAFTS_SPEEDS, p, q0, u0, ts, throw=False, max_steps=SPEEDS_BATCH_MAX_STEPS)
+    L = jnp.dot(wq, sol.q[-1]) + jnp.dot(wqd, sol.qd[-1])
+    return L, (sol.q, sol.qd, sol.status._value, sol.u)
+
+
+VALUE_AND_GRAD_SPEEDS = jax.jit(jax.vmap(jax.value_and_grad(_loss_speeds, has_aux=True)))
+"""The same for the family in speeds, with respect to THETA_SPEEDS."""
+
+
+def theta_keys(case) -> tuple:
+    """The differentiated parameters of a value case: THETA, and the skew coupling se in speeds."""
+    return THETA_SPEEDS if getattr(case, "family", None) == "speeds" else THETA
 
 
 def ref_loss(case: Case, theta: dict) -> Optional[float]:
@@ -1043,7 +1323,7 @@ def ref_loss(case: Case, theta: dict) -> Optional[float]:
 def direction(case: Case) -> dict:
     """A fixed pseudo-random direction in THETA (relative to each parameter's size)."""
     rng = np.random.default_rng(abs(hash(tuple(np.round(case.ts, 12)))) % 2**32)
-    return {k: float(rng.normal()) * (abs(float(case.theta[k])) + 0.1) for k in THETA}
+    return {k: float(rng.normal()) * (abs(float(case.theta[k])) + 0.1) for k in theta_keys(case)}
 
 
 def judge_gradient(case: Case, grad: dict, h: float = 1e-4) -> Outcome:
@@ -1051,9 +1331,10 @@ def judge_gradient(case: Case, grad: dict, h: float = 1e-4) -> Outcome:
     GRAD_RTOL of the terms' size, plus what the absolute tolerance allows, MOTION_ATOL (1000 × atol)
     per unit of the sensitivities' weights Σ|W|·Σ|v_i| (the sensitivities share the state's atol)."""
     v = direction(case)
-    gv_terms = np.array([float(grad[k]) * v[k] for k in THETA])
-    plus = ref_loss(case, {k: float(case.theta[k]) + h * v[k] for k in THETA})
-    minus = ref_loss(case, {k: float(case.theta[k]) - h * v[k] for k in THETA})
+    keys = theta_keys(case)
+    gv_terms = np.array([float(grad[k]) * v[k] for k in keys])
+    plus = ref_loss(case, {k: float(case.theta[k]) + h * v[k] for k in keys})
+    minus = ref_loss(case, {k: float(case.theta[k]) - h * v[k] for k in keys})
     if plus is None or minus is None:
         return Outcome(SILENT_WRONG, "success, but the reference failed near the parameters")
     fd = (plus - minus) / (2 * h)
@@ -1071,7 +1352,7 @@ def judge_gradient(case: Case, grad: dict, h: float = 1e-4) -> Outcome:
 
 def stack_cases(cases, weights=(W_Q, W_QD)):
     f = lambda xs: jnp.asarray(np.stack([np.asarray(x, float) for x in xs]))  # noqa: E731
-    theta = {k: f([c.theta[k] for c in cases]) for k in THETA}
+    theta = {k: f([c.theta[k] for c in cases]) for k in theta_keys(cases[0])}
     rest = {k: f([c.rest[k] for c in cases]) for k in cases[0].rest}
     return (
         theta,
@@ -1088,26 +1369,34 @@ def stack_cases(cases, weights=(W_Q, W_QD)):
 
 def batched(cases, weights=(W_Q, W_QD)):
     """(q, q̇, status, gradient dict) per case, calling VALUE_AND_GRAD on batches of BATCH cases
-    (the last one padded by repeating its first case)."""
+    (the last one padded by repeating its first case); for cases in speeds (all of one family),
+    VALUE_AND_GRAD_SPEEDS, and (q, q̇, status, gradient dict, u)."""
+    if not cases:
+        return []
+    speeds = cases[0].family == "speeds"
+    assert all((c.family == "speeds") == speeds for c in cases), "one family per call"
+    program, keys = (VALUE_AND_GRAD_SPEEDS, THETA_SPEEDS) if speeds else (VALUE_AND_GRAD, THETA)
     out = []
     for i in range(0, len(cases), BATCH):
         chunk = list(cases[i : i + BATCH])
         n = len(chunk)
         chunk += [chunk[0]] * (BATCH - n)
-        (_, (q, qd, status)), grad = VALUE_AND_GRAD(*stack_cases(chunk, weights))
-        q, qd, status = np.asarray(q), np.asarray(qd), np.asarray(status)
+        (_, aux), grad = program(*stack_cases(chunk, weights))
+        q, qd, status = np.asarray(aux[0]), np.asarray(aux[1]), np.asarray(aux[2])
         grad = {k: np.asarray(v) for k, v in grad.items()}
-        out += [(q[j], qd[j], int(status[j]), {k: float(grad[k][j]) for k in THETA}) for j in range(n)]
+        for j in range(n):
+            row = (q[j], qd[j], int(status[j]), {k: float(grad[k][j]) for k in keys})
+            out.append(row + (np.asarray(aux[3][j]),) if speeds else row)
     return out
 
 
 def run_vmap_grad(cases):
     """(value outcome, gradient outcome) per case, from batched calls of VALUE_AND_GRAD."""
     out = []
-    for c, (q, qd, code, g) in zip(cases, batched(cases)):
-        value = judge_solution(c, q, qd, code, describe(code))
+    for c, (q, qd, code, g, *u) in zip(cases, batched(cases)):
+        value = judge_solution(c, q, qd, code, describe(code), u=u[0] if u else None)
         if code != 0:
-            finite = [k for k in THETA if np.isfinite(g[k])]
+            finite = [k for k in g if np.isfinite(g[k])]
             gradient = (
                 Outcome(FAILURE, "NaN gradient with the failure status")
                 if not finite
@@ -1143,12 +1432,21 @@ def lin_reference(case: Case, speeds, at_qd: bool = False):
     ):
         return None
     M, A = ShaftsModel.mass(q, t, p), ShaftsModel.jac(q, qd, t, p)
+    field = None
+    if getattr(case, "family", None) == "speeds":  # the state is (q, u[speeds]); the equations in u
+        K = np.linalg.inv(speeds_matrix(q, p, np))
+        M, A = K.T @ M @ K, A @ K
+        qd = speeds_of(q, qd, p)
+
+        def field(q_, v_, start_):
+            return ref_reduced_field_speeds(p, q_, v_, t, speeds, start_)
+
     kkt = np.block([[M, -A.T], [A, np.zeros((1, 1))]])
     dep = [i for i in range(3) if i not in speeds]
     if np.linalg.cond(kkt) > 1e12 or np.linalg.cond(A[:, dep]) > 1e12:
         return None
     with np.errstate(all="ignore"):
-        ref = ref_linearization(ShaftsModel, p, q, qd, t, speeds, at_qd=at_qd)
+        ref = ref_linearization(ShaftsModel, p, q, qd, t, speeds, at_qd=at_qd, field=field)
     return ref if np.all(np.isfinite(ref)) else None
 
 
@@ -1168,9 +1466,11 @@ def judge_linearization(case: Case, L, speeds, at_qd: bool = False) -> Outcome:
 
 
 def run_linearize_eager(case: Case, **kw) -> Outcome:
+    """`linearize` of the shafts family, or of the family in speeds (its state then (q, u[speeds]))."""
     kw = {"speeds": LIN_SPEEDS, **kw}
+    mech = MECHS[case.family]
     try:
-        L = nh.linearize(SHAFTS, _params_for_call(case.params), case.q0, case.qd0, float(case.ts[0]), **kw)
+        L = nh.linearize(mech, _params_for_call(case.params), case.q0, case.velocities(), float(case.ts[0]), **kw)
     except Exception as e:  # noqa: BLE001
         return judge_error(case, e)
     return judge_linearization(case, (L.A, L.state, L.rates), L.speeds)
@@ -1181,12 +1481,19 @@ def _lin(p, q, qd, t):
     return L.A, L.state, L.rates
 
 
+def _lin_speeds(p, q, u, t):
+    L = nh.linearize(SHAFTS_SPEEDS, p, q, u, t, speeds=LIN_SPEEDS)
+    return L.A, L.state, L.rates
+
+
 _LIN_JIT = jax.jit(_lin)
+_LIN_JIT_SPEEDS = jax.jit(_lin_speeds)
 
 
 def run_linearize_jit(case: Case) -> Outcome:
+    fn = _LIN_JIT_SPEEDS if case.family == "speeds" else _LIN_JIT
     try:
-        L = _LIN_JIT(_params_for_call(case.params), case.q0, case.qd0, case.ts[0])
+        L = fn(_params_for_call(case.params), case.q0, case.velocities(), case.ts[0])
     except Exception as e:  # noqa: BLE001
         return judge_error(case, e)
     return judge_linearization(case, L, LIN_SPEEDS)
@@ -1528,6 +1835,33 @@ def run_gradient_matrix_undeclared(cases):
         got = np.array([q[-1, 0], g["c1"] * c["p"]["J1"], g["J2"]])
         out.append((code, got, np.array(gm_reference(c["p"], c["w0"], c["T"]))))
     return out
+
+
+# --- the value classes in speeds, for the report ---------------------------------------------
+
+
+def speeds_rows(n_eager: int, n_jit: int, n_batches: int, n_lin: int):
+    """(interface, class, case, outcome) for the value classes in speeds (`speeds_cases`): simulate
+    eagerly and under jax.jit (throw=True), jit(vmap(value_and_grad)) (value and gradient rows) and
+    linearize eagerly and under jit; what tests/test_fuzz.py runs, with more cases, for a report."""
+
+    def drawn(strategy, n):
+        return draw(strategy, n) if n else []
+
+    for cls in VALUE_CLASSES:
+        for c in drawn(speeds_cases(cls), n_eager):
+            yield "simulate in speeds, eager", cls, c, run_eager(c)
+        for c in drawn(speeds_cases(cls), n_jit):
+            yield "simulate in speeds, jax.jit (throw=True)", cls, c, run_jit(c)
+        for c in drawn(speeds_cases(cls), n_lin):
+            c = lin_case(c)
+            yield "linearize in speeds, eager", cls, c, run_linearize_eager(c)
+            yield "linearize in speeds, jax.jit", cls, c, run_linearize_jit(c)
+    batches = drawn(st.tuples(*(speeds_cases(c) for c in VALUE_CLASSES)), n_batches)
+    cases = [c for b in batches for c in b]
+    for c, (value, grad) in zip(cases, run_vmap_grad(cases)):
+        yield "simulate in speeds, jit(vmap(value_and_grad)): value", c.cls, c, value
+        yield "simulate in speeds, jit(vmap(value_and_grad)): gradient", c.cls, c, grad
 
 
 # --- known library issues (found by these generators; reported, not hidden) -------------------

@@ -22,6 +22,10 @@ compiles a handful of programs: eager simulate, simulate under the user's jax.ji
 throw=True, jax.jit(jax.vmap(jax.value_and_grad(...))), eager "lagrange" for the family
 with m = s, and linearize eagerly and under jit. Calls that need a program of their own
 (other dtypes, tolerances, a real fit) are marked slow.
+
+Speeds (issue 44) are a factor of the value classes: the same mechanism written in speeds
+u = S(q) q̇, judged by the same reference (eager simulate and linearize in the quick tier; simulate
+under jit, jit(vmap(value_and_grad)) and linearize under jit, each a program of its own, slow).
 """
 
 import math
@@ -211,6 +215,159 @@ def test_linearize_options():
         results.append((c, R.run_linearize_eager(c, **kw)))
     assert all(o.kind == R.CLEAR_ERROR for _, o in results), results
     settle(results, "linearize options")
+
+
+# --- the value classes in speeds (issue 44): the same mechanism written in u = S(q) q̇ --------------
+#
+# `R.speeds_cases(cls)` writes each value class's case in the speeds u = S(q) q̇, S invertible and
+# state-dependent, with traced parameters (S's skew part depends on q, so Hamel's transpositional
+# terms are nonzero). The motion (q, q̇) is the family's, judged by the same reference; the returned
+# speeds must be S(q) q̇ of it. Eager simulate and linearize are in the quick tier; simulate under
+# jit, jit(vmap(value_and_grad)) and linearize under jit compile programs of their own (slow tier).
+
+
+def _boltzmann_hamel_sides(p, q, u, ud, h=1e-30):
+    """Both sides of the Boltzmann–Hamel identity for the family in speeds, T*(q, u) = ½ (Ku)ᵀ M (Ku),
+    K = S(q)⁻¹: Kᵀ (M q̈) with q̈ = d/dt (K u), and d/dt ∂T*/∂u − Kᵀ ∂T*/∂q + τ (τ by hand,
+    `R.ref_hamel_terms`), the derivatives by complex steps (NumPy only)."""
+    M = R.ShaftsModel.mass(q, 0.0, p)
+
+    def K(q_):
+        return np.linalg.inv(R.speeds_matrix(q_, p, np))
+
+    def T(q_, u_):
+        v = K(q_) @ u_
+        return 0.5 * v @ M @ v
+
+    def momentum(q_, u_):
+        return K(q_).T @ M @ K(q_) @ u_
+
+    qd = K(q) @ u
+    qdd = np.imag(K(q + 1j * h * qd) @ (u + 1j * h * ud)) / h  # d/dt (K u) along (q̇, u̇)
+    lhs = K(q).T @ (M @ qdd)
+    dmom = np.imag(momentum(q + 1j * h * qd, u + 1j * h * ud)) / h
+    dTdq = np.array([np.imag(T(q + 1j * h * e, u)) / h for e in np.eye(3)])
+    tau = R.ref_hamel_terms(p, q, u, 0.0)
+    return lhs, dmom - K(q).T @ dTdq + tau, tau
+
+
+def test_the_speeds_variant_and_its_oracle():
+    """The reference's pieces for speeds, and that the variant exercises Hamel's terms:
+
+    * ∂S/∂q by hand against complex-step derivatives of S;
+    * Hamel's terms τ by hand satisfy the Boltzmann–Hamel identity Kᵀ(d/dt ∂T/∂q̇ − ∂T/∂q) =
+      d/dt ∂T*/∂u − Kᵀ ∂T*/∂q + τ at random states (to rounding), and are not small there (5–65 % of
+      the largest term), and zero without S's skew part;
+    * the family's motion integrated in (q, u) by SciPy, u̇ = S q̈ + Ṡ q̇ (the map the linearisation
+      reference uses), is right against the family's reference; with τ left out of the equations in
+      speeds, or counted twice, it is silent wrong by far (a library that dropped them would be caught);
+    * returned speeds off S(q) q̇ by 1e-9 of their size, or finite with a failure status, are silent wrong."""
+    case = draw_all(R.speeds_cases("valid"), 3)[-1]
+    p = {k: float(v) for k, v in case.params.items()}
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        q = rng.normal(size=3) * 2
+        cs = np.stack([np.imag(R.speeds_matrix(q + 1e-30j * e, p, np)) / 1e-30 for e in np.eye(3)], axis=-1)
+        np.testing.assert_allclose(R.speeds_matrix_derivative(q, p), cs, rtol=0, atol=1e-15)
+        u, ud = rng.normal(size=3), rng.normal(size=3)
+        lhs, rhs, tau = _boltzmann_hamel_sides(p, q, u, ud)
+        np.testing.assert_allclose(lhs, rhs, rtol=0, atol=1e-13 * np.max(np.abs(lhs)))
+        assert np.max(np.abs(tau)) > 1e-2 * np.max(np.abs(lhs))
+        # without the skew part the speeds are rates of coordinates, u = d/dt F(q): no such terms
+        assert np.max(np.abs(R.ref_hamel_terms({**p, "se": 0.0}, q, u, 0.0))) == 0.0
+
+    ref = case.reference()
+    assert ref is not None
+    qd0 = R.ref_project(R.ShaftsModel, case.q0, case.qd0, case.ts[0], p)
+    u0 = R.speeds_of(case.q0, qd0, p)
+    kinds, motions = {}, {}
+    for hamel in (0.0, -1.0, 1.0):
+        # (at rtol 1e-10: its error stays 1e3 below the allowed; with τ wrong, 1e-7 shows an error of order 1)
+        motion = R.ref_motion_speeds(p, case.q0, u0, case.ts, hamel=hamel, rtol=1e-7 if hamel else 1e-10)
+        assert motion is not None
+        q, qd, u = motions[hamel] = motion
+        out = R.judge_solution(case, q, qd, 0, "success", ref, u=u)
+        kinds[hamel] = out.kind
+        if hamel:
+            assert R.motion_error(q, qd, ref, case.ts) > 10, out  # far outside the allowed error
+    assert kinds == {0.0: R.RIGHT, -1.0: R.SILENT_WRONG, 1.0: R.SILENT_WRONG}, kinds
+    q, qd, u = motions[0.0]
+    assert R.judge_solution(case, q, qd, 0, "success", ref, u=u * (1 + 1e-9)).kind == R.SILENT_WRONG
+    nan = np.full_like(q, np.nan)
+    assert R.judge_solution(case, nan, nan, 3, "solve failed: x", ref, u=u).kind == R.SILENT_WRONG
+    assert R.judge_solution(case, nan, nan, 3, "solve failed: x", ref, u=nan).kind == R.FAILURE
+
+
+SPEEDS_SLOW = ("singular mass matrix",)
+"""Value classes whose speeds variant takes minutes eagerly: the first case of "singular mass matrix"
+(K² = J1 J2 exactly) is refused at once in q̇, but in speeds the computed ∂²T/∂u² (smallest eigenvalue
+~1e-16, of either sign by rounding) passes simulate's initial check: its Jacobi-scaled Cholesky pivots
+are 1, 1e-4 and 8.5e-13, the last one rounding noise amplified by the small second pivot, above the
+threshold 1e3 eps. The run stalls at t ≈ 1e-12 and ends at max_steps (100 000 steps, 90–250 s on a
+shared 2-core machine, twice here: throw=False, then throw=True) with status mass_matrix_became_singular:
+a failure status, an accepted outcome, but not one for the quick tier. (Under jit the same case takes one
+such run; the batched program's max_steps bounds it, R.SPEEDS_BATCH_MAX_STEPS.)"""
+
+
+def _speeds_classes():
+    return [pytest.param(c, marks=pytest.mark.slow) if c in SPEEDS_SLOW else c for c in R.VALUE_CLASSES]
+
+
+@pytest.mark.parametrize("cls", _speeds_classes())
+def test_simulate_in_speeds_eagerly(cls):
+    """The value classes in speeds, eagerly (throw=False gives the status; a failure must also raise
+    with throw=True): the same outcomes as in q̇."""
+    results = [(c, R.run_eager(c)) for c in draw_all(R.speeds_cases(cls), 2)]
+    expected_kinds(cls, results)
+    settle(results, f"simulate in speeds, {cls}")
+
+
+@pytest.mark.parametrize("cls", R.VALUE_CLASSES)
+def test_linearize_in_speeds(cls):
+    """linearize of the family in speeds (state (q, u_phi1, u_phi3)), eagerly: right against the
+    complex-step derivative of the reference's reduced field in speeds, or an error naming the argument."""
+    results = [(c, R.run_linearize_eager(R.lin_case(c))) for c in draw_all(R.speeds_cases(cls), 2)]
+    if cls in ALWAYS_RIGHT:
+        assert {o.kind for _, o in results} == {R.RIGHT}, results
+    settle(results, f"linearize in speeds, {cls}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", R.VALUE_CLASSES)
+def test_simulate_in_speeds_under_jit_throws_in_graph(cls):
+    """The value classes in speeds under the user's jax.jit with throw=True."""
+    results = [(c, R.run_jit(c)) for c in draw_all(R.speeds_cases(cls), 2)]
+    expected_kinds(cls, results)
+    settle(results, f"jax.jit(simulate) in speeds, {cls}")
+
+
+@pytest.mark.slow
+def test_simulate_in_speeds_under_vmap_and_grad():
+    """One batch holds a case of every value class in speeds: values, and the gradient with respect to
+    (J2, c1, se) along a random direction against the reference's central differences (the motion does
+    not depend on S's skew coupling se: its part of the gradient must vanish to the tolerance). The
+    program has max_steps = R.SPEEDS_BATCH_MAX_STEPS (a member that needs more ends in a failure status)."""
+    batches = draw_all(st.tuples(*(R.speeds_cases(c) for c in R.VALUE_CLASSES)), 1)
+    results = []
+    for batch in batches:
+        for c, (value, grad) in zip(batch, R.run_vmap_grad(list(batch))):
+            results += [(c, value), (c, grad)]
+    for c, o in results:
+        if c.cls in ALWAYS_RIGHT:
+            assert o.kind == R.RIGHT, (c.cls, o)
+        if c.cls in ALWAYS_FAILED:
+            assert o.kind == R.FAILURE, (c.cls, o)
+    settle(results, "jax.vmap(jax.value_and_grad(simulate)) in speeds")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cls", R.VALUE_CLASSES)
+def test_linearize_in_speeds_under_jit(cls):
+    """linearize of the family in speeds under jax.jit: right, or NaN in the result."""
+    results = [(c, R.run_linearize_jit(R.lin_case(c))) for c in draw_all(R.speeds_cases(cls), 2)]
+    if cls in ALWAYS_RIGHT:
+        assert {o.kind for _, o in results} == {R.RIGHT}, results
+    settle(results, f"linearize in speeds under jit, {cls}")
 
 
 # --- fit -----------------------------------------------------------------------------------------
