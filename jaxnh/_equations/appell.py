@@ -88,7 +88,7 @@ class Appell(Formulation):
                 "cannot use either); use method='lagrange'"
             )
         ind = resolve_independent(mech, self.independent, s, m)  # pyright: ignore[reportArgumentType]
-        return dataclasses.replace(self, mech=mech, s=s, m=m, nq=s if nq is None else int(nq), independent=ind)
+        return dataclasses.replace(super().bind(mech, s, m, nq), independent=ind)  # pyright: ignore[reportReturnType, reportArgumentType]
 
     @property
     def split(self) -> VelocitySplit:
