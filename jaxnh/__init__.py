@@ -61,7 +61,7 @@ from jaxnh._equations import (  # noqa: E402
 )
 from jaxnh._equations.consistent import consistent_velocities  # noqa: E402
 from jaxnh._equations.step_maps import StepMaps  # noqa: E402
-from jaxnh._model.contacts import ContactLaw, Coulomb, FrictionContact, Stribeck, Viscous  # noqa: E402
+from jaxnh._model.contacts import ContactLaw, Coulomb, FrictionContact, Multiplier, Stribeck, Viscous  # noqa: E402
 from jaxnh._model.mechanism import Mechanism  # noqa: E402
 from jaxnh._solve.friction import ContactDiagnostics  # noqa: E402
 from jaxnh._solve.ode import ODE, ode  # noqa: E402
@@ -111,6 +111,7 @@ __all__ = [
     "ContactLaw",
     "Coulomb",
     "Viscous",
+    "Multiplier",
     "Stribeck",
     "ContactDiagnostics",
     "stick_margin",

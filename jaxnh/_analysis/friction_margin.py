@@ -85,7 +85,7 @@ def stick_margin(
     def one(q, qd, t, lam):
         out = []
         for c in mech.contacts:
-            N, mus, _ = c.values(q, qd, t, params)
+            N, mus, _ = c.values(q, qd, t, params, multipliers=lam)
             f = jnp.stack([lam[r] for r in c.rows])
             norm = jnp.sqrt(jnp.sum(f * f) + jnp.finfo(f.dtype).tiny)
             out.append(norm / (mus * N))

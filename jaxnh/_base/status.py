@@ -184,8 +184,9 @@ class STATUS(diffrax.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     contact_normal_force_lost = (
         "A friction contact's normal force N fell to zero during the run. Coulomb's law then "
         "holds nothing, and a negative N would make the friction force push the body: the model "
-        "given has no lift-off (the normal direction is not one of the mechanism's coordinates), "
-        "so the solve stopped there. sol.contacts.stopped_at and sol.contacts.stopped_contact "
+        "given has no lift-off (the normal direction is not one of the mechanism's coordinates; for a "
+        "normal force taken from a constraint with Multiplier, the body would leave the surface "
+        "there), so the solve stopped there. sol.contacts.stopped_at and sol.contacts.stopped_contact "
         "give the time and the contact. Check the contact's normal_force, or model the normal "
         "direction in the mechanism."
     )

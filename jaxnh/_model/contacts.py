@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import Callable, Optional, Sequence, Union
+from typing import Callable, ClassVar, Optional, Sequence, Union
 
 import equinox as eqx
 import jax
@@ -35,7 +35,16 @@ import numpy as np
 from jaxnh._base.types import PyTree
 
 
-__all__ = ["FrictionContact", "ContactValue", "ContactLaw", "Coulomb", "Viscous", "Stribeck", "check_contacts"]
+__all__ = [
+    "FrictionContact",
+    "ContactValue",
+    "ContactLaw",
+    "Coulomb",
+    "Viscous",
+    "Stribeck",
+    "Multiplier",
+    "check_contacts",
+]
 
 ContactValue = Union[float, Callable]
 """A contact quantity: a number (a constant of the model, compiled in) or a function
@@ -43,7 +52,41 @@ ContactValue = Union[float, Callable]
 `params` are traced, so they can be differentiated, batched and fitted)."""
 
 
+class Multiplier(eqx.Module):
+    """A normal force taken from the mechanism: the multiplier of one of its constraint rows, N.
+
+    `FrictionContact(rows, normal_force=Multiplier(row), ...)` presses the contact with the
+    force that holds constraint row `row` of the mechanism, counted over all its velocity
+    constraints: the nonholonomic rows of `constraints` first, then the differentiated
+    holonomic ones ġ = 0 (so the first holonomic row is `row = m_nh`). Write that row as the
+    rate of the contact's **normal gap**, in m/s (a holonomic g in metres: g = distance of the
+    contact point from the surface, positive on the free side), so that its multiplier is the
+    normal force in newtons and is positive while the surface presses the body. This is the
+    convention of the friction rows (slip velocities, m/s, whose multipliers are forces, N).
+
+    The normal force then follows the motion: a bead on a rough wire is pressed by the force
+    that keeps it on the wire, a ball on a curved surface by the force that keeps it on the
+    surface. The kinetic force and the normal force depend on each other (the friction changes
+    the accelerations, which change the force the gap row needs), and are solved together with
+    the other multipliers. The contact must press: a normal force that falls to zero stops the
+    solve with `STATUS.contact_normal_force_lost` (friction never pushes a body; lift-off is
+    not modelled). Needs `method="lagrange"` (Appell's equations have no multipliers).
+
+    Attributes:
+        row: the index of the constraint row whose multiplier is the normal force.
+    """
+
+    row: int = eqx.field(static=True)
+
+    def __init__(self, row: int):
+        if isinstance(row, bool) or not isinstance(row, (int, np.integer)) or row < 0:
+            raise TypeError(f"Multiplier: `row` must be a constraint row index (an int ≥ 0); got {row!r}")
+        self.row = int(row)
+
+
 def _as_value(name: str, x, owner: str = "FrictionContact") -> ContactValue:
+    if name == "normal_force" and isinstance(x, Multiplier):
+        return x  # pyright: ignore[reportReturnType]
     if callable(x):
         return x
     if isinstance(x, jax.core.Tracer):
@@ -93,7 +136,16 @@ class ContactLaw(eqx.Module):
       every slip starts and stops. The solve calls the law at speeds ≥ 0 only;
       beyond the stop that ends a slip (where the steps that locate the stop
       look) it continues the force linearly with its slope at speed 0.
+
+    With a normal force taken from the mechanism (`Multiplier`), the kinetic force
+    and the normal force are solved together: exactly in one step when the force is
+    affine in N (set the class attribute `affine_in_normal_force = True`, as the
+    built-in laws do), else by Newton's method from N = 0 with a fixed number of
+    steps.
     """
+
+    affine_in_normal_force: ClassVar[bool] = False
+    """Whether `slip_force` is affine in N (a + b·N, with a and b free of N)."""
 
     @abc.abstractmethod
     def slip_force(
@@ -124,6 +176,8 @@ class ContactLaw(eqx.Module):
 
 class Coulomb(ContactLaw):
     """Coulomb's law: a kinetic force `μk N` (N), whatever the slip speed. The default law."""
+
+    affine_in_normal_force: ClassVar[bool] = True
 
     def slip_force(
         self,
@@ -157,6 +211,7 @@ class Viscous(ContactLaw):
     """
 
     damping: ContactValue = eqx.field(static=True)
+    affine_in_normal_force: ClassVar[bool] = True
 
     def __init__(self, damping: ContactValue):
         self.damping = _as_value("damping", damping, "Viscous")
@@ -199,6 +254,7 @@ class Stribeck(ContactLaw):
     speed_scale: ContactValue = eqx.field(static=True)
     exponent: ContactValue = eqx.field(static=True)
     damping: ContactValue = eqx.field(static=True)
+    affine_in_normal_force: ClassVar[bool] = True
 
     def __init__(self, speed_scale: ContactValue, exponent: ContactValue = 2.0, damping: ContactValue = 0.0):
         self.speed_scale = _as_value("speed_scale", speed_scale, "Stribeck")
@@ -248,7 +304,9 @@ class FrictionContact(eqx.Module):
             tangential directions of a point contact). Each row must be the
             slip velocity of the contact point, m/s, so that its multiplier is
             the tangential contact force, N.
-        normal_force: the normal force pressing the contact, N (≥ 0).
+        normal_force: the normal force pressing the contact, N (≥ 0): a value (below),
+            or `Multiplier(row)`, the multiplier of one of the mechanism's constraint
+            rows (the normal gap's rate), computed with the motion.
         mu_static: static friction coefficient μs (≥ μk): the contact sticks
             while the tangential force it needs satisfies `‖λ‖ ≤ μs N`.
         mu_kinetic: kinetic friction coefficient μk (≥ 0): while slipping, a
@@ -266,7 +324,7 @@ class FrictionContact(eqx.Module):
     """
 
     rows: tuple = eqx.field(static=True)
-    normal_force: ContactValue = eqx.field(static=True)
+    normal_force: Union[ContactValue, Multiplier] = eqx.field(static=True)
     mu_static: ContactValue = eqx.field(static=True)
     mu_kinetic: ContactValue = eqx.field(static=True)
     name: Optional[str] = eqx.field(static=True, default=None)
@@ -275,7 +333,7 @@ class FrictionContact(eqx.Module):
     def __init__(
         self,
         rows: Union[int, Sequence[int]],
-        normal_force: ContactValue,
+        normal_force: Union[ContactValue, Multiplier],
         mu_static: ContactValue,
         mu_kinetic: ContactValue,
         name: Optional[str] = None,
@@ -299,7 +357,7 @@ class FrictionContact(eqx.Module):
             raise TypeError(f"FrictionContact: `name` must be a string or None; got {name!r}")
         self.name = name
         self.law = _check_law(law)
-        numbers = {k: getattr(self, k) for k in ("normal_force", "mu_static", "mu_kinetic")}
+        numbers: dict = {k: getattr(self, k) for k in ("normal_force", "mu_static", "mu_kinetic")}
         for k, v in numbers.items():
             if isinstance(v, float) and v < 0:
                 raise ValueError(f"FrictionContact: `{k}` must be ≥ 0; got {v}")
@@ -307,14 +365,35 @@ class FrictionContact(eqx.Module):
         if isinstance(mus, float) and isinstance(muk, float) and mus < muk:
             raise ValueError(f"FrictionContact: expected mu_static ≥ mu_kinetic; got μs = {mus} < μk = {muk}")
 
+    @property
+    def normal_row(self) -> Optional[int]:
+        """The constraint row whose multiplier is the normal force (`Multiplier`), or None."""
+        return self.normal_force.row if isinstance(self.normal_force, Multiplier) else None
+
     def values(
-        self, q: jax.typing.ArrayLike, qd: jax.typing.ArrayLike, t: jax.typing.ArrayLike, params: object
+        self,
+        q: jax.typing.ArrayLike,
+        qd: jax.typing.ArrayLike,
+        t: jax.typing.ArrayLike,
+        params: object,
+        multipliers: Optional[jax.typing.ArrayLike] = None,
     ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """`(N, μs, μk)` at one state: normal force (N) and the two coefficients, scalars."""
+        """`(N, μs, μk)` at one state: normal force (N) and the two coefficients, scalars.
+
+        `multipliers` (m,), N: the constraint forces at the state, needed when the normal force
+        is a `Multiplier`."""
         dtype = jnp.result_type(qd)
         out = []
         for v in (self.normal_force, self.mu_static, self.mu_kinetic):
-            x = v(q, qd, t, params) if callable(v) else v
+            if isinstance(v, Multiplier):
+                if multipliers is None:
+                    raise ValueError(
+                        "FrictionContact.values: the normal force is a Multiplier; pass the constraint "
+                        "forces at the state as `multipliers`"
+                    )
+                x = jnp.asarray(multipliers)[v.row]
+            else:
+                x = v(q, qd, t, params) if callable(v) else v
             out.append(jnp.asarray(x, dtype=dtype).reshape(()))
         return out[0], out[1], out[2]
 
@@ -376,17 +455,31 @@ def check_contacts(contacts: tuple) -> None:
             seen[r] = i
 
 
-def check_contact_shapes(contacts: tuple, n_nonholonomic: int, q, qd, t, params) -> None:
-    """Rows within the nonholonomic constraints, and scalar contact values (at trace time)."""
+def check_contact_shapes(contacts: tuple, n_nonholonomic: int, m: int, q, qd, t, params) -> None:
+    """Rows within the nonholonomic constraints, normal-force rows within all m velocity
+    constraints and held by no contact, and scalar contact values (at trace time)."""
+    friction_rows = {r for c in contacts for r in c.rows}
     for i, c in enumerate(contacts):
         if max(c.rows) >= n_nonholonomic:
             raise ValueError(
                 f"Mechanism: contacts[{i}] holds rows {c.rows}, but `constraints` returns {n_nonholonomic} "
                 "rows; friction-held rows index the nonholonomic constraints (holonomic ones cannot slip)"
             )
+        row = c.normal_row
+        if row is not None and (row >= m or row in friction_rows):
+            why = (
+                f"the mechanism has {m} velocity constraints (nonholonomic first, then the holonomic ones ġ)"
+                if row >= m
+                else "that row is held by friction (a slip velocity), not a normal gap"
+            )
+            raise ValueError(
+                f"Mechanism: contacts[{i}].normal_force = Multiplier({row}): {why}. The row must be a constraint "
+                "row that always holds, written as the rate of the contact's normal gap (m/s), so that its "
+                "multiplier is the normal force (N)"
+            )
         for name in ("normal_force", "mu_static", "mu_kinetic"):
             f = getattr(c, name)
-            if not callable(f):
+            if not callable(f) or isinstance(f, Multiplier):
                 continue
             try:
                 out = eqx.filter_eval_shape(f, q, qd, t, params)
@@ -402,7 +495,7 @@ def check_contact_shapes(contacts: tuple, n_nonholonomic: int, q, qd, t, params)
 
         def force(q_, qd_, t_, p_, c=c):
             dtype = jnp.result_type(qd_)
-            N, mus, muk = c.values(q_, qd_, t_, p_)
+            N, mus, muk = c.values(q_, qd_, t_, p_, multipliers=jnp.ones((m,), dtype))
             return c.law.slip_force(jnp.zeros((), dtype), N, mus, muk, q_, qd_, t_, p_)
 
         try:

@@ -515,7 +515,7 @@ class Mechanism(eqx.Module):
                 "differentiated twice for the mass matrix); compute it from the float velocities qd, "
                 "e.g. 0.5 * J * qd[0] ** 2"
             )
-        m = 0
+        m, g = 0, None
         if self.constraints is not None:
             c = out(self.constraints, "constraints", q, qd, t, params)
             if not _is_vector(c):
@@ -525,7 +525,6 @@ class Mechanism(eqx.Module):
                     "with jnp.stack([...]), e.g. jnp.stack([U21(t) * qd[0] - qd[1]]) for one constraint"
                 )
             m = c.shape[0]
-            check_contact_shapes(self.contacts, m, q, qd, t, params)
         if self.holonomic is not None:
             g = out(self.holonomic, "holonomic", q, t, params)
             if not _is_vector(g):
@@ -535,6 +534,9 @@ class Mechanism(eqx.Module):
                     "it with jnp.stack([...]), e.g. jnp.stack([q[0] ** 2 + q[1] ** 2 - 1.0])"
                 )
             m += g.shape[0]
+        if self.contacts:
+            n_nh = m - (0 if g is None else g.shape[0])
+            check_contact_shapes(self.contacts, n_nh, m, q, qd, t, params)
         if m > s:
             raise ValueError(
                 f"Mechanism: m={m} constraints but there are only s={s} coordinates (nonholonomic and holonomic "

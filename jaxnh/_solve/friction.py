@@ -124,6 +124,10 @@ LOST_BELOW = 1e-6
 ROOT_TOLERANCE = 1e3
 """Transition times are located to ROOT_TOLERANCE · eps (relative and absolute, s)."""
 
+NEWTON_NORMAL = 6
+"""Newton steps for normal forces that are multipliers (`Multiplier`) when a contact's law is not affine in N
+(`ContactLaw.affine_in_normal_force`); from N = 0, quadratic convergence."""
+
 STOP_BELOW = 1e-4
 """A two-row contact whose slip speed along its slip direction reaches 0 has stopped when the rest of
 its slip velocity is below this fraction of its velocity scale; otherwise its slip has turned by 90°
@@ -377,10 +381,25 @@ class _Friction(eqx.Module):
         sl = slipping.astype(dtype)
         return jnp.stack([sl[j] for j in self.owner])
 
-    def values(self, q, qd, t, params):
-        """(N, μs, μk), each (c,)."""
-        vals = [c.values(q, qd, t, params) for c in self.contacts]
+    def values(self, q, qd, t, params, multipliers=None):
+        """(N, μs, μk), each (c,). A normal force that is a multiplier (`Multiplier`) is read from
+        `multipliers` (m,), or is 1 (a placeholder) without them: see `mode_values`."""
+        if multipliers is None and self.multiplier_normals:
+            multipliers = jnp.ones((self.m,), qd.dtype)
+        vals = [c.values(q, qd, t, params, multipliers) for c in self.contacts]
         return tuple(jnp.stack([v[i] for v in vals]).astype(qd.dtype) for i in range(3))
+
+    def mode_values(self, q, qd, t, params, mode: "Mode"):
+        """(N, μs, μk), each (c,), in `mode`: normal forces that are multipliers from the masked
+        KKT system in that mode (the others as `values`)."""
+        if not self.multiplier_normals:
+            return self.values(q, qd, t, params)
+        return self.kkt(q, qd, t, params, mode)[3]
+
+    @property
+    def multiplier_normals(self) -> bool:
+        """Whether a contact's normal force is the multiplier of a constraint row (`Multiplier`)."""
+        return any(c.normal_row is not None for c in self.contacts)
 
     @property
     def has_laws(self) -> bool:
@@ -420,8 +439,13 @@ class _Friction(eqx.Module):
     def law_codes(self, q, qd, t, params, mode: Mode):
         """(c,) int: the `STOP_CAUSES` code of a law whose slip force at (q, qd, t) in `mode` is not
         finite or negative, else 0."""
-        N, mus, muk = self.values(q, qd, t, params)
-        _, bad = self.law_forces(self.slip(q, qd, t, params), mode, N, mus, muk, q, qd, t, params)
+        if self.multiplier_normals:
+            bad = self.kkt(q, qd, t, params, mode)[4]
+        else:
+            N, mus, muk = self.values(q, qd, t, params)
+            _, bad = self.law_forces(self.slip(q, qd, t, params), mode, N, mus, muk, q, qd, t, params)
+        if bad is None:  # (Coulomb's contacts only: their values are `invalid`'s)
+            return jnp.zeros((self.nc,), jnp.int32)
         return jnp.where(bad, LAW_INVALID, 0)
 
     def force_at_rest(self, j: int, N, mus, muk, q, qd, t, params):
@@ -478,21 +502,57 @@ class _Friction(eqx.Module):
         With M = L Lᵀ, W = L⁻¹ Aᵀ and the kinetic forces F as generalized forces
         `Aᵀ F`: `(WᵀW)_EE λ_E = −b_E − W_Eᵀ u`, `qdd = L⁻ᵀ (u + W_E λ_E)` over the
         engaged rows E (the others carry an identity so that every shape is fixed).
+
+        A normal force that is the multiplier of an engaged row (`Multiplier`) depends on the
+        kinetic forces, which depend on it: N = λ_n(F(N)). λ_n is affine in F, so for a law
+        affine in N (Coulomb's, `Viscous`, `Stribeck`) the fixed point is one Newton step from
+        N = 0, exact; other laws take `NEWTON_NORMAL` steps.
         """
         mech = self.mech
         M, h = mass_and_velocity_terms(mech, q, qd, t, params)
         L = cholesky(M)
         A, b = constraint_terms(mech, q, qd, t, params)
         w = self.slip(q, qd, t, params)
-        N, mus, muk = self.values(q, qd, t, params)
         E = self.scatter(qd.dtype)
-        F, law_bad = self.kinetic(w, mode, N, mus, muk, q, qd, t, params)
-        Fm = mm(E, F)
         e = 1.0 - mm(E, self.released(mode.slipping, qd.dtype))
-        u = solve_lower(L, mech.generalized_forces(q, qd, t, params) - h + mm(A.T, Fm))
+        u0 = solve_lower(L, mech.generalized_forces(q, qd, t, params) - h)
         W = solve_lower(L, A.T)
         S = mm(W.T, W) * e[:, None] * e[None, :] + jnp.diag(1.0 - e)
-        lam = solve_psd_min_norm(S, e * (-b - mm(W.T, u))) * e
+
+        def solve(Fm):  # (u, λ) with the kinetic forces Fm (m,) on the released rows
+            u = u0 + mm(W, Fm)
+            return u, solve_psd_min_norm(S, e * (-b - mm(W.T, u))) * e
+
+        def forces(N, mus, muk):
+            F, law_bad = self.kinetic(w, mode, N, mus, muk, q, qd, t, params)
+            return mm(E, F), law_bad
+
+        N, mus, muk = self.values(q, qd, t, params)
+        if self.multiplier_normals:
+            rows = [c.normal_row for c in self.contacts]
+            taken = jnp.asarray([r is not None for r in rows])
+            index = jnp.asarray([0 if r is None else r for r in rows])
+            given = N
+
+            def normals(Nm):  # the normal forces the motion needs when the kinetic forces follow Nm
+                Nc = jnp.where(taken, Nm, given)
+                lam = solve(forces(Nc, mus, muk)[0])[1]
+                return jnp.where(taken, lam[index], given)
+
+            affine = all(c.law.affine_in_normal_force for c in self.contacts)
+            N = normals(jnp.zeros_like(given))
+            eye = jnp.eye(self.nc, dtype=qd.dtype)
+            for _ in range(1 if affine else NEWTON_NORMAL):
+                r, J = value_and_jacfwd(normals, N)
+                N = N - solve_square(eye - J, N - r)
+            N = jnp.where(taken, N, given)
+        Fm, law_bad = forces(N, mus, muk)
+        if self.multiplier_normals and not affine and law_bad is not None:
+            # a law not affine in N whose fixed point Newton's steps did not reach: reported as a bad law value
+            eps = jnp.finfo(qd.dtype).eps
+            off = jnp.abs(N - normals(N)) > jnp.sqrt(eps) * (jnp.abs(N) + jnp.finfo(qd.dtype).tiny)
+            law_bad = law_bad | (taken & off)
+        u, lam = solve(Fm)
         qdd = solve_upper_t(L, u + mm(W, lam))
         return qdd, lam + (1.0 - e) * Fm, w, (N, mus, muk), law_bad
 
@@ -637,7 +697,7 @@ class _Friction(eqx.Module):
         row_scale = constraint_scale(A, qd, a)
         row_tol = consistency_tolerance(A, qd, a)
         w = pick(c0, self.flat)
-        N, mus, muk = self.values(q, qd, t, params)
+        N, mus, muk = self.values(q, qd, t, params)  # (normal forces that are multipliers: from `kkt` below)
         tiny = jnp.finfo(q.dtype).tiny
         scale = jnp.stack([_safe_norm(pick(row_scale, c.rows)) for c in self.contacts]) + tiny
         tau = math.sqrt(eps) * scale
@@ -669,7 +729,7 @@ class _Friction(eqx.Module):
         E = self.scatter(q.dtype)
         for it in range(self.nc + 1):
             mode = Mode(~engaged, jnp.concatenate(direction), tau, scale, force_scale)
-            _, lam, _, _, _ = self.kkt(q, qd, t, params, mode)
+            _, lam, _, (N, mus, muk), _ = self.kkt(q, qd, t, params, mode)
             forces = self.contact_forces(lam)
             viol = []
             for j, lj in enumerate(forces):
@@ -685,6 +745,9 @@ class _Friction(eqx.Module):
                 viol.append(out)
             engaged = engaged & ~jnp.stack(viol)
         new = Mode(~engaged, jnp.concatenate(direction), tau, scale, force_scale)
+        if self.multiplier_normals:  # the normal forces' scale in the mode decided
+            N = self.kkt(q, qd, t, params, new)[3][0]
+            new = Mode(new.slipping, new.direction, tau, scale, jnp.where(jnp.isfinite(N), jnp.abs(N), 1.0) + tiny)
         if initial:
             return new, jnp.zeros((self.nc,), jnp.int32)
         changed_dir = jnp.stack([jnp.any(pick(new.direction, idx) != pick(prev.direction, idx)) for idx in self.local])
@@ -956,6 +1019,13 @@ def _run_traced(
         ok = ok & laws_ok
         if graph_throw:
             q0r = raise_in_graph(q0r, status0)
+    if f.multiplier_normals:  # normal forces from the motion: they press at the start, in the modes decided
+        N0 = f.kkt(qs0, qds0, ts0, ps0, mode0)[3][0]
+        pressing = jnp.all(jnp.isfinite(N0) & (N0 >= 0))
+        status0 = STATUS.where(ok & ~pressing, STATUS.friction_values_invalid, status0)  # pyright: ignore[reportArgumentType]
+        ok = ok & pressing
+        if graph_throw:
+            q0r = raise_in_graph(q0r, status0)
     mode0 = _where_tree(ok, mode0, dummy)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
     event = diffrax.Event(_Guard(f), root_finder=_EventRootFinder(rtol=tol, atol=tol), direction=True)
@@ -1053,7 +1123,10 @@ def _run_traced(
         # jumped to NaN, inf or an unphysical one (located to the root finder's tolerance, so it is read
         # at the event and just after it, where the value's own time dependence has crossed)
         probe = ts1 + 4 * tol * (1 + jnp.abs(ts1))
-        bad = jnp.maximum(f.invalid(*f.values(qs1, qds1, ts1, ps1)), f.invalid(*f.values(qs1, qds1, probe, ps1)))
+        bad = jnp.maximum(
+            f.invalid(*f.mode_values(qs1, qds1, ts1, ps1, mode_s)),
+            f.invalid(*f.mode_values(qs1, qds1, probe, ps1, mode_s)),
+        )
         if f.has_laws:
             # a law's force can turn bad with the state (the slip speed) as well as with t: it is read at the
             # event and at the state carried on to the probe's time along the velocities and accelerations
@@ -1266,6 +1339,12 @@ def simulate_friction(
         raise ValueError(
             "with friction contacts, simulate reports at `ts` only: saveat=, event= and progress_meter= are not "
             "available (the solve is a sequence of segments that end at the contact's own events)"
+        )
+    if isinstance(form, Appell) and any(c.normal_row is not None for c in mech.contacts):
+        names = ", ".join(c.label(i) for i, c in enumerate(mech.contacts) if c.normal_row is not None)
+        raise ValueError(
+            f"method='appell': the normal force of {names} is a constraint's multiplier (Multiplier), and "
+            "Appell's equations eliminate the multipliers; use method='lagrange'"
         )
     if isinstance(form, Appell) and mech.nonlinear_constraints:
         raise ValueError("friction contacts with constraints nonlinear in the velocities need method='lagrange'")
