@@ -3,10 +3,22 @@
 `knife_edge` (on an incline), `disc` (rolling disc), `disc_speeds` (the same disc in
 Kane's generalized speeds), `bicycle`
 (the Whipple bicycle benchmark), `turntable` (a ball on a turntable, in a unit
+quaternion), `rattleback` (an ellipsoid-bottomed body whose spin reverses, in a unit
 quaternion) and `balance_assist` (a real bicycle's roll-rate feedback steer control,
 fitted to measured weave eigenvalues)."""
 
-from jaxnh.models import balance_assist, bicycle, chaplygin, disc, disc_speeds, knife_edge, sleigh, turntable, variator
+from jaxnh.models import (
+    balance_assist,
+    bicycle,
+    chaplygin,
+    disc,
+    disc_speeds,
+    knife_edge,
+    rattleback,
+    sleigh,
+    turntable,
+    variator,
+)
 
 
 __all__ = [
@@ -16,6 +28,7 @@ __all__ = [
     "disc",
     "disc_speeds",
     "knife_edge",
+    "rattleback",
     "sleigh",
     "turntable",
     "variator",
