@@ -27,15 +27,15 @@ unit quaternion e (body → space, `R = rotation_from_quaternion(e)`). Speeds
 `u = (ẋ, ẏ, Ω1, Ω2, Ω3)`: G's horizontal velocity (m/s) and the angular velocity in body
 (principal) axes (rad/s), with ė = ½ e ⊗ (0, Ω) (`quaternion_rate(..., frame="body")`).
 
-Energy: with ż = dζ/dt along ė (automatic differentiation of ζ(e)),
+Energy: with ż = dζ/dt = −ẑ·(R (Ω × ρ)) (the contact point moves along the surface, normal to
+ẑ, so only the turning about it moves G up or down),
 
     T = ½ m (ẋ² + ẏ² + ż²) + ½ (I1 Ω1² + I2 Ω2² + I3 Ω3²),        V = m g ζ(e).
 
 Rolling: the velocity of the body's material point at the contact, v_G + R (Ω × ρ), is zero.
-Its vertical component vanishes identically (ż = −ẑ·(R (Ω × ρ)), since the contact point moves
-along the surface, normal to ẑ), so the constraints are its two horizontal components, in the
-speeds (m/s; their multipliers are the horizontal contact forces, N). Rolling is lossless:
-E = T + V is constant (`energy`).
+Its vertical component vanishes identically (by the rate ż above), so the constraints are its
+two horizontal components, in the speeds (m/s; their multipliers are the horizontal contact
+forces, N). Rolling is lossless: E = T + V is constant (`energy`).
 
 Spin reversal: with δ ≠ 0 a steady spin about the vertical is unstable in at least one sense
 of rotation; rocking grows, takes the spin's energy and turns it back with the other sign.
@@ -138,13 +138,14 @@ def height(q: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
 
 
 def _height_rate(q: jax.Array, u: jax.Array, p: dict[str, Any]) -> jax.Array:
-    """ż, m/s: the rate of `height` along ė = ½ e ⊗ (0, Ω)."""
-    edot = quaternion_rate(q[2:], u[2:], frame="body")
-    return jax.jvp(lambda e: height(q.at[2:].set(e), 0.0, p), (q[2:],), (edot,))[1]
+    """ż = −ẑ·(R (Ω × ρ)), m/s: the exact rate of `height` along ė = ½ e ⊗ (0, Ω) (the contact
+    point slides along the surface, normal to ẑ, so only the body's turning about it moves G up)."""
+    R = rotation_from_quaternion(q[2:])
+    return -(R[2] @ jnp.cross(u[2:5], contact_point(R[2], p)))
 
 
 def kinetic(q: jax.Array, u: jax.Array, t: ArrayLike, p: dict[str, Any]) -> jax.Array:
-    """T = ½ m (ẋ² + ẏ² + ż²) + ½ Σ Iᵢ Ωᵢ², J (in the speeds u; ż from the height ζ(e))."""
+    """T = ½ m (ẋ² + ẏ² + ż²) + ½ Σ Iᵢ Ωᵢ², J (in the speeds u; ż the rate of the height ζ(e))."""
     zdot = _height_rate(q, u, p)
     return 0.5 * p["m"] * (u[0] ** 2 + u[1] ** 2 + zdot**2) + 0.5 * jnp.sum(p["I"] * u[2:] ** 2)
 
