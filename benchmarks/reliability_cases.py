@@ -1280,8 +1280,7 @@ SPEEDS_BATCH_MAX_STEPS = 1000
 """max_steps of the batched program in speeds. Under vmap every member takes as many steps as the
 slowest one, and a step of this program (ten members, three forward sensitivities) took 75 ms on a
 loaded 2-core machine: a nearly singular mass matrix (class "singular mass matrix", δ > 0) needs
-~9e4 steps in speeds, and the exactly singular one that passes the initial check in speeds (see
-tests/test_fuzz.py) runs to max_steps, so the default 100 000 would hold a batch for two hours. A
+~9e4 steps in speeds, so the default 100 000 would hold a batch for two hours. A
 member that reaches this limit ends with a failure status (judged as such: NaN values and gradient);
 the classes that must be right need at most a few hundred steps."""
 

@@ -291,3 +291,69 @@ def test_split_regularity_is_judged_by_the_smallest_singular_value_not_the_volum
         assert bool(split_regular(mech, q0, qd0, 0.0, pk, 3, 1))
         assert bool(split_regular(mech, q0, qd0, 0.0, pk, 3, 1, independent=(0, 2)))
         assert not bool(split_regular(mech, q0, qd0, 0.0, pk, 3, 1, independent=(1, 2)))
+
+
+# --- a mass matrix singular to rounding, written in speeds -------------------------------------
+#
+# Two shafts coupled by K² = J1 J2 (T is then a perfect square in q̇1, q̇2: ∂²T/∂q̇² singular), and a
+# third shaft, written in speeds u = S(q) q̇ with S(q) invertible and state-dependent (diagonal
+# 1 + a_i sin² q_i, skew coupling e). ∂²T/∂u² = S⁻ᵀ M S⁻¹ is then singular too; computed through
+# S⁻¹ its smallest eigenvalue is rounding noise (~1e-16 of its largest, of either sign). The check
+# used to pass such a matrix when its Jacobi-scaled Cholesky pivots were 1, 1e-4, 8.5e-13 (> 1e3
+# eps: the last pivot is rounding noise amplified by the second), and the solve stalled at
+# max_steps. The threshold, the smallest eigenvalue of the Jacobi-scaled matrix > 1e3 eps, lies far
+# above rounding noise (~eps) and far below δ = 1e-6, the nearly singular but valid case.
+
+
+def _S(q, p):
+    s0, s1, s2 = jnp.sin(q[0]), jnp.sin(q[1]), jnp.sin(q[2])
+    e = p["e"]
+    return jnp.array(
+        [
+            [1.0 + p["a1"] * s0**2, e * s2, 0.0 * s0],
+            [-e * s2, 1.0 + p["a2"] * s1**2, e * s0],
+            [0.0 * s0, -e * s0, 1.0 + p["a3"] * s2**2],
+        ]
+    )
+
+
+def _T_speeds(q, u, t, p):
+    qd = jnp.linalg.solve(_S(q, p), u)
+    return 0.5 * (p["J1"] * qd[0] ** 2 + p["J2"] * qd[1] ** 2 + p["J3"] * qd[2] ** 2) + p["K"] * qd[0] * qd[1]
+
+
+MECH_SPEEDS = nh.Mechanism(_T_speeds, kinematics=lambda q, u, t, p: jnp.linalg.solve(_S(q, p), u))
+
+
+def _speeds_draws(delta, n=64, seed=0):
+    rng = np.random.default_rng(seed)
+    J = 10.0 ** rng.uniform(-3, 1, size=(n, 3))
+    sign = rng.choice([-1.0, 1.0], size=n)
+    p = dict(
+        J1=J[:, 0],
+        J2=J[:, 1],
+        J3=J[:, 2],
+        K=sign * np.sqrt(J[:, 0] * J[:, 1] * (1 - delta)),
+        a1=rng.uniform(0, 1, n),
+        a2=rng.uniform(0, 1, n),
+        a3=rng.uniform(0, 1, n),
+        e=rng.choice([-1.0, 1.0], size=n) * rng.uniform(0.1, 0.5, n),
+    )
+    q = rng.uniform(-np.pi, np.pi, size=(n, 3))
+    u = rng.normal(size=(n, 3))
+    return {k: jnp.asarray(v) for k, v in p.items()}, jnp.asarray(q), jnp.asarray(u)
+
+
+@pytest.mark.parametrize("delta,positive", [(0.0, False), (1e-6, True)])
+def test_mass_matrix_singular_to_rounding_in_speeds_is_refused(delta, positive):
+    """64 random draws: K² = J1 J2 exactly is refused in every one, δ = 1e-6 passes in every one;
+    through simulate, the first draw stops at once with the status that names the mass matrix."""
+    from jaxnh._model.checks import mass_matrix_check
+
+    p, q, u = _speeds_draws(delta)
+    ok, _ = jax.jit(jax.vmap(lambda q, u, p: mass_matrix_check(MECH_SPEEDS, q, u, 0.0, p)))(q, u, p)
+    assert np.all(np.asarray(ok) == positive)
+    if not positive:
+        p0 = {k: v[0] for k, v in p.items()}
+        sol = nh.simulate(MECH_SPEEDS, p0, q[0], u[0], TS, throw=False)
+        assert bool(sol.status == nh.STATUS.mass_matrix_not_positive_definite), sol.message

@@ -298,15 +298,12 @@ def test_the_speeds_variant_and_its_oracle():
     assert R.judge_solution(case, nan, nan, 3, "solve failed: x", ref, u=nan).kind == R.FAILURE
 
 
-SPEEDS_SLOW = ("singular mass matrix",)
-"""Value classes whose speeds variant takes minutes eagerly: the first case of "singular mass matrix"
-(K² = J1 J2 exactly) is refused at once in q̇, but in speeds the computed ∂²T/∂u² (smallest eigenvalue
-~1e-16, of either sign by rounding) passes simulate's initial check: its Jacobi-scaled Cholesky pivots
-are 1, 1e-4 and 8.5e-13, the last one rounding noise amplified by the small second pivot, above the
-threshold 1e3 eps. The run stalls at t ≈ 1e-12 and ends at max_steps (100 000 steps, 90–250 s on a
-shared 2-core machine, twice here: throw=False, then throw=True) with status mass_matrix_became_singular:
-a failure status, an accepted outcome, but not one for the quick tier. (Under jit the same case takes one
-such run; the batched program's max_steps bounds it, R.SPEEDS_BATCH_MAX_STEPS.)"""
+SPEEDS_SLOW: tuple[str, ...] = ()
+"""Value classes whose speeds variant takes minutes eagerly (none now). "singular mass matrix" was one:
+its first case (K² = J1 J2 exactly) in speeds has a computed ∂²T/∂u² whose Jacobi-scaled Cholesky
+pivots were 1, 1e-4 and 8.5e-13 (rounding noise amplified by the small second pivot), above the
+threshold 1e3 eps, so it passed the initial check and ran to max_steps (90–250 s). The initial check
+now tests the smallest eigenvalue (~1e-16 here), and the case is refused at once as in q̇."""
 
 
 def _speeds_classes():

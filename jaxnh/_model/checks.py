@@ -63,13 +63,15 @@ def mass_matrix_check(mech, q, qd, t, params) -> tuple[jax.Array, jax.Array]:
     r = jnp.where(r > 0, r, jnp.sqrt(tiny))
     Ms = (0.5 * (M + M.T) / r[:, None]) / r[None, :]
     Ms = jnp.where(jnp.isfinite(Ms), Ms, 0.0)
-    # Cholesky pivots of the unit-diagonal matrix: all > 1e3 eps (each pivot bounds the
-    # smallest eigenvalue from above, and a pivot ≤ 0 means not positive definite). A check runs
-    # once per solve: the library's factorisation (NaN where it meets a pivot ≤ 0) compiles in a
-    # fraction of the time of the element-by-element one the vector field uses
-    L = jnp.linalg.cholesky(Ms)
-    pivots = jnp.diag(L) ** 2
-    ok = jnp.all(jnp.isfinite(M)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(pivots)) & jnp.all(pivots > 1e3 * eps)
+    # The smallest eigenvalue of the unit-diagonal matrix, > 1e3 eps. A symmetric eigensolver is
+    # backward stable (each computed eigenvalue is within ~n eps ‖Ms‖ ≤ n² eps of one of the matrix
+    # as computed), so a matrix singular up to the rounding of its own entries (λ_min of order
+    # eps, of either sign) cannot pass. Cholesky pivots only bound the
+    # smallest eigenvalue from above: after a small pivot, the next carries its rounding noise
+    # amplified (a mass matrix singular to rounding, written in speeds, had pivots 1, 1e-4 and
+    # 8.5e-13 > 1e3 eps, and stalled at max_steps instead of being refused here).
+    lam = jnp.linalg.eigvalsh(jax.lax.stop_gradient(Ms))
+    ok = jnp.all(jnp.isfinite(M)) & jnp.all(d > 0) & jnp.all(jnp.isfinite(lam)) & (jnp.min(lam) > 1e3 * eps)
     return ok, d
 
 
