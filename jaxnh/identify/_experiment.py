@@ -52,7 +52,7 @@ from jaxnh._model.mechanism import Mechanism
 from jaxnh._model.profiles import trainable
 from jaxnh._solve.sensitivity import ForwardSensitivity
 from jaxnh._solve.simulate import simulate, STATUS
-from jaxnh.identify._fit import prepare
+from jaxnh.identify._fit import nominal_coordinates, prepare, speed_names_of
 from jaxnh.identify.data import Record
 from jaxnh.identify.design import multistart
 from jaxnh.identify.estimates import estimate_fields, Estimates
@@ -164,9 +164,11 @@ class Experiment(eqx.Module):
     Attributes:
         problem: the `Problem` (`jaxnh.identify.prepare`), single shooting.
         ts: report (sample) times (n,), s.
-        sigma: noise standard deviation per observed channel (k,), rad.
-        state: the initial-state entries of θ (observed positions, independent
-            velocities), nominal.
+        sigma: noise standard deviation per observed channel (k,), units of
+            the channel (rad, m, rad/s).
+        state: the initial-state entries of θ (observed positions, rotation
+            vectors of observed quaternions (zero), independent velocities or
+            speeds), nominal.
         labels: label of every entry of θ.
     """
 
@@ -219,13 +221,14 @@ class Experiment(eqx.Module):
         )
 
     def jacobian(self, params: Optional[PyTree] = None) -> tuple[jax.Array, Any]:
-        """Whitened sensitivities J = ∂(q_obs/σ)/∂θ (n·k, size) at `params`,
-        and the nominal `Solution` (with multipliers) from the same solve."""
+        """Whitened sensitivities J = ∂(y_obs/σ)/∂θ (n·k, size) at `params` (y: the observed channels,
+        coordinates and speeds), and the nominal `Solution` (with multipliers) from the same solve."""
         obs = jnp.asarray(self.problem.observed)
 
         def f(th):
             sol = self.simulate(params, th)
-            return (sol.q[:, obs] / self.sigma).reshape(-1), sol
+            y = self.problem.channel_values(sol.q, sol.u)
+            return (y[:, obs] / self.sigma).reshape(-1), sol
 
         J, sol = jax.jacfwd(f, has_aux=True)(self.theta(params))
         return J, sol
@@ -237,11 +240,12 @@ class Experiment(eqx.Module):
 
 
 def _nominal_record(mech, params, ts, q0, qd0, observe, names, method, rtol, atol, max_steps) -> Record:
+    """The noise-free record of the observed channels (`names`: the coordinates', then the speeds')."""
     sol = simulate(mech, params, q0, qd0, ts, method=method, rtol=rtol, atol=atol, max_steps=max_steps, throw=False)
     if not bool(sol.status == STATUS.successful):
         raise ValueError(f"the nominal experiment cannot be simulated: {sol.message}")
-    q = np.asarray(sol.q)
-    return Record(np.asarray(ts), {c: q[:, names.index(c)] for c in observe}, {}, "nominal (noise-free) simulation")
+    y = np.concatenate([np.asarray(sol.q), np.asarray(sol.u)], axis=1)
+    return Record(np.asarray(ts), {c: y[:, names.index(c)] for c in observe}, {}, "nominal (noise-free) simulation")
 
 
 def experiment(
@@ -260,6 +264,7 @@ def experiment(
     rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100_000,
+    speed_names: Optional[Sequence[str]] = None,
 ) -> Experiment:
     """Set up an `Experiment`: the fit's least-squares problem on the nominal
     (noise-free) motion, before any data.
@@ -271,33 +276,47 @@ def experiment(
         ts: sample times (n,), s: duration and sampling rate of the record.
         free, positive: as for `fit` (positive ones enter θ as logarithms, so
             their standard errors are relative ones).
-        observe: measured coordinates (default: all), e.g. ("phi1", "phi2").
-        noise: per observed channel, a standard deviation (rad), a
-            `ChannelNoise` (Gaussian plus quantisation) or `encoder_noise(...)`;
-            a dict by channel or one value for all.
-        q0, qd0: the nominal initial state (s,), must satisfy the constraints
-            (default q0 = 0; qd0 is required).
-        method, solver, rtol, atol, max_steps: as for `fit`.
+        observe: measured channels (default: all coordinates), e.g.
+            ("phi1", "phi2"): coordinates by `Mechanism.names`, velocities by
+            `speed_names` (a gyro's angular velocity of a mechanism in
+            speeds, rad/s).
+        noise: per observed channel, a standard deviation (its units: rad,
+            m, rad/s), a `ChannelNoise` (Gaussian plus quantisation) or
+            `encoder_noise(...)`; a dict by channel or one value for all.
+        q0, qd0: the nominal initial state, must satisfy the constraints:
+            coordinates (n_q,) (default 0, and the identity for a quaternion
+            group) and velocities — the speeds u0 (n_u,) of a mechanism with
+            `kinematics`, else q̇0 (n_q,) (required).
+        method, solver, rtol, atol, max_steps, speed_names: as for `fit`
+            (the unknowns are those `fit` estimates, rotation vectors of
+            observed quaternions included).
     """
     if not isinstance(mech, Mechanism):
         raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
-    if mech.kinematics is not None:
-        raise ValueError(
-            "experiment: a mechanism with `kinematics` (speeds, e.g. a unit quaternion) is not supported yet; "
-            "write the mechanism in q̇ to design an experiment for it"
-        )
     ts = np.asarray(ts, dtype=float)
     if ts.ndim != 1 or ts.size < 20 or not np.all(np.diff(ts) > 0):
         raise ValueError("ts: need a strictly increasing 1-D array of at least 20 sample times (s)")
-    names = mech.coordinate_names(int(np.shape(qd0)[0]) if qd0 is not None else len(mech.names or ()))
     if qd0 is None:
-        raise ValueError("qd0: give the nominal initial velocities (s,) of the experiment")
-    q0 = np.zeros(len(names)) if q0 is None else np.asarray(q0, dtype=float)
+        raise ValueError("qd0: give the nominal initial velocities (speeds) of the experiment")
     qd0 = np.asarray(qd0, dtype=float)
+    if q0 is not None:
+        s = int(np.shape(q0)[0])
+    elif mech.names is not None:
+        s = len(mech.names)
+    elif mech.kinematics is None:
+        s = int(qd0.shape[0])
+    else:
+        raise ValueError("q0: the mechanism in speeds has no coordinate names; pass q0 (n_q,)")
+    names = mech.coordinate_names(s)
+    q0 = nominal_coordinates(mech, s, q0)
+    speeds = speed_names_of(mech, names, int(qd0.shape[0]), speed_names)
+    channels = tuple(names) + speeds
     observe = tuple(names) if observe is None else ((observe,) if isinstance(observe, str) else tuple(observe))
-    bad = [c for c in observe if c not in names]
+    bad = [c for c in observe if c not in channels]
     if bad:
-        raise ValueError(f"observe: {bad} are not coordinates of the mechanism; coordinates are {names}")
+        raise ValueError(
+            f"observe: {bad} are not coordinates or speeds of the mechanism; coordinates are {names}, speeds {speeds}"
+        )
     sig = _sigmas(noise, observe)
     rec = _nominal_record(
         mech,
@@ -306,7 +325,7 @@ def experiment(
         jnp.asarray(q0),
         jnp.asarray(qd0),
         observe,
-        list(names),
+        list(channels),
         method,
         rtol,
         atol,
@@ -327,6 +346,7 @@ def experiment(
         rtol=rtol,
         atol=atol,
         max_steps=max_steps,
+        speed_names=speeds,
     )
     P = problem.par.size
     return Experiment(
@@ -497,13 +517,15 @@ def _hinge2(x):
 
 
 def _positive_power(exp: Experiment, params, sol):
+    """Σ_i max(Q_i u_i, 0) at the report times, W: the forces Q are conjugate to the velocities u
+    (the speeds of a mechanism with `kinematics`, else q̇)."""
     forces = exp.problem.mech.forces
     Q = (
-        jax.vmap(lambda q, qd, t: forces(q, qd, t, params))(sol.q, sol.qd, sol.ts)
+        jax.vmap(lambda q, u, t: forces(q, u, t, params))(sol.q, sol.u, sol.ts)
         if forces is not None
-        else jnp.zeros_like(sol.qd)
+        else jnp.zeros_like(sol.u)
     )
-    return jnp.sum(jnp.maximum(Q * sol.qd, 0.0), axis=1)
+    return jnp.sum(jnp.maximum(Q * sol.u, 0.0), axis=1)
 
 
 def _criterion_terms(

@@ -1,8 +1,8 @@
 """`fit`: estimate parameters of a mechanism from a measured record.
 
-Least squares of simulated against measured coordinates, with gradients
-through the ODE solver, then the Gauss–Newton covariance scaled by the
-residual variance, and an identifiability check that says in words which
+Least squares of simulated against measured channels (coordinates and, for
+a mechanism in speeds, speeds too), with gradients through the ODE solver,
+then the Gauss–Newton covariance scaled by the residual variance, and an identifiability check that says in words which
 combinations the data cannot determine.
 """
 
@@ -78,10 +78,14 @@ class FitResult(Estimates):
 
     Attributes:
         params: the fitted params pytree (same structure as the starting one).
-        q0, qd0: fitted initial coordinates and velocities (s,) at t[0].
+        q0, qd0: fitted initial coordinates (n_q,) and velocities at t[0]:
+            the speeds u0 (n_u,) of a mechanism with `kinematics` (what
+            `jaxnh.simulate` takes as qd0), else q̇0 (n_q,).
         estimates: {name: {"value", "std"}} for every free parameter (scalars
             as floats, profiles' trainable values as arrays) and for the
-            fitted initial state (entries like "phi1(t0)", "phi1'(t0)").
+            fitted initial state (entries like "phi1(t0)", "phi1'(t0)"; for
+            a mechanism in speeds "<speed>(t0)", and "rot_x[e0..e3](t0)"
+            etc. for the rotation vector of an estimated quaternion, rad).
             Units are those of the parameter; `std` is the standard error
             (inf when the data do not determine it).
         labels, values, std: the same, flat, one entry per unknown.
@@ -224,10 +228,12 @@ def _local_rates(t, y, i0, window=RATE_WINDOW):
 
 @one_shot_jit
 def _velocity_map(problem: Problem, q, t, params):
-    """b, B with observed velocities = B v + b for independent velocities v."""
+    """b, B with the observed channels' rates = B v + b for independent velocities (speeds) v: a
+    coordinate channel's rate is its q̇ (`Mechanism.rate`), a velocity channel's value is itself."""
 
     def f(v):
-        return problem.split().velocities(q, v, t, params, problem.independent)[jnp.asarray(problem.observed)]
+        u = problem.split().velocities(q, v, t, params, problem.independent)
+        return problem.channel_values(problem.mech.rate(q, u, t, params), u)[jnp.asarray(problem.observed)]
 
     v0 = jnp.zeros(len(problem.independent), q.dtype)
     return value_and_jacfwd(f, v0)
@@ -245,15 +251,58 @@ def _trajectory(problem: Problem, theta, t):
     return problem.trajectory(theta, t)
 
 
-def _independent_from_rates(problem: Problem, q, rates, t, params):
-    """Independent velocities whose constraint-consistent qd best match observed rates."""
+@solve_jit
+def _channels(problem: Problem, theta, t):
+    return problem.channels(theta, t)
+
+
+def speed_names_of(mech: Mechanism, names: Sequence[str], n_u: int, speed_names: Optional[Sequence[str]]) -> tuple:
+    """The names of the n_u velocities: `speed_names` when given; else "<coordinate>'" for a
+    mechanism without `kinematics` (u is q̇), and "u0", "u1", ... for one in speeds."""
+    if speed_names is not None:
+        out = _as_list(speed_names)
+        if len(out) != n_u or not all(isinstance(c, str) for c in out):
+            raise ValueError(f"speed_names: expected {n_u} names (one per speed u); got {speed_names!r}")
+    elif mech.kinematics is None:
+        out = tuple(f"{c}'" for c in names)
+    else:
+        out = tuple(f"u{j}" for j in range(n_u))
+    clash = sorted(set(out) & set(names)) + sorted({c for c in out if out.count(c) > 1})
+    if clash:
+        raise ValueError(f"speed_names: {clash} name more than one channel (coordinates are {tuple(names)})")
+    return out
+
+
+def nominal_coordinates(mech: Mechanism, s: int, q0: Optional[ArrayInput]) -> np.ndarray:
+    """q0 (s,) as floats, zeros when None, with each quaternion group (`Mechanism.quaternions`) at unit
+    norm: divided by its norm, or the identity (1, 0, 0, 0) when q0 is None."""
+    q = np.zeros(s) if q0 is None else np.array(q0, dtype=float)
+    if q.shape != (s,):
+        raise ValueError(f"q0 must have shape ({s},); got {q.shape}")
+    for g in mech.quaternions:
+        if max(g) >= s:
+            raise ValueError(f"quaternions={mech.quaternions!r} name coordinate {max(g)}, but there are {s}")
+        if q0 is None:
+            q[list(g)] = (1.0, 0.0, 0.0, 0.0)
+        norm = float(np.linalg.norm(q[list(g)]))
+        if not norm > 0:
+            raise ValueError(f"q0: the quaternion group {g} is zero; give a unit quaternion (w, x, y, z)")
+        q[list(g)] /= norm
+    return q
+
+
+def _independent_from_rates(problem: Problem, q, rates, t, params, weights=None):
+    """Independent velocities (speeds) whose constraint-consistent u best match the observed
+    channels' rates (q̇ of coordinate channels, values of velocity channels), in least squares
+    with the rows weighted by `weights` (default equal)."""
     b, B = (np.asarray(x) for x in _velocity_map(problem, q, jnp.asarray(t, q.dtype), params))
     if not (np.all(np.isfinite(B)) and np.all(np.isfinite(b)) and np.all(np.isfinite(rates))):
         raise ValueError(
             "qd0: the initial velocities cannot be estimated from the record (the constraints give a "
             "non-finite velocity map at the first sample, or the rates are not finite); pass qd0="
         )
-    v, *_ = np.linalg.lstsq(B, np.asarray(rates) - b, rcond=None)
+    w = np.ones(B.shape[0]) if weights is None else np.asarray(weights, dtype=float)
+    v, *_ = np.linalg.lstsq(B * w[:, None], (np.asarray(rates) - b) * w, rcond=None)
     return v
 
 
@@ -276,15 +325,17 @@ def prepare(
     shooting: int = 1,
     differentiation: str = "forward",
     defect_weight: float = 10.0,
+    speed_names: Optional[Sequence[str]] = None,
 ) -> tuple[Problem, jax.Array, Observations, tuple[str, ...]]:
     """Set up the least-squares problem without solving it.
 
     Takes the same arguments as `fit` (see there). Returns
     `(problem, theta0, observations, names)`: the `Problem` (a pytree), the
     starting vector θ0, the `Observations` (times, data, noise levels) and
-    the coordinate names. `problem.residuals(theta0, observations)` works
-    under `jit`/`vmap`, so many records of the same shape can be fitted in a
-    batch with `jax.vmap(solve_least_squares, in_axes=(None, 0, 0))`.
+    the channel names: the n_q coordinate names, then the n_u speed names
+    ("<coordinate>'" for a mechanism without `kinematics`).
+    `problem.residuals(theta0, observations)` works under `jit`/`vmap`, so
+    many records of the same shape can be fitted in a batch with `jax.vmap(solve_least_squares, in_axes=(None, 0, 0))`.
     """
     if not isinstance(mech, Mechanism):
         raise TypeError(f"mech must be a jaxnh.Mechanism; got {type(mech).__name__}")
@@ -299,12 +350,28 @@ def prepare(
     else:
         raise ValueError("q0: the mechanism has no coordinate names, so pass q0 (s,) to give the number of coordinates")
     names = mech.coordinate_names(s)
-    observe = tuple(c for c in names if c in data.channels) if observe is None else _as_list(observe)
+    # the velocities: q̇ without `kinematics`; with it, the speeds u (four quaternion coordinates
+    # turn with three angular speeds, so n_u = n_q − groups unless qd0 or speed_names say otherwise)
+    if qd0 is not None:
+        n_u = int(np.shape(qd0)[0])
+    elif speed_names is not None:
+        n_u = len(_as_list(speed_names))
+    else:
+        n_u = s - len(mech.quaternions) if mech.kinematics is not None else s
+    speeds = speed_names_of(mech, names, n_u, speed_names)
+    channels = tuple(names) + speeds
+    observe = tuple(c for c in channels if c in data.channels) if observe is None else _as_list(observe)
     if not observe:
-        raise ValueError(f"observe: none of the coordinates {names} is a channel of the record ({list(data.channels)})")
+        raise ValueError(
+            f"observe: none of the coordinates {names} or speeds {speeds} is a channel of the record "
+            f"({list(data.channels)})"
+        )
     for c in observe:
-        if c not in names:
-            raise ValueError(f"observe: {c!r} is not a coordinate of the mechanism; coordinates are {names}")
+        if c not in channels:
+            raise ValueError(
+                f"observe: {c!r} is not a coordinate or speed of the mechanism; coordinates are {names}, "
+                f"speeds {speeds} (name the speeds with speed_names=)"
+            )
     y = data.observed(observe)
     n = data.n
     sigma = _noise(noise, observe, y)
@@ -321,16 +388,25 @@ def prepare(
     params = par.params
     f = jnp.result_type(float)
     t0 = float(data.t[0])
-    q0_fixed = np.zeros(s) if q0 is None else np.asarray(q0, dtype=float)
-    if q0_fixed.shape != (s,):
-        raise ValueError(f"q0 must have shape ({s},); got {q0_fixed.shape}")
+    observed = tuple(channels.index(c) for c in observe)
+    column = {i: j for j, i in enumerate(observed)}  # channel index -> column of y
+    in_group = {i for g in mech.quaternions for i in g}
+    positions = tuple(i for i in observed if i < s and i not in in_group)
+    rotations = tuple(g for g in mech.quaternions if any(i in column for i in g))
+    q0_fixed = nominal_coordinates(mech, s, q0)
+    if q0 is None:  # an orientation measured whole: its nominal value is the first sample
+        for g in rotations:
+            if all(i in column for i in g):
+                e = np.asarray(y[0, [column[i] for i in g]], dtype=float)
+                if np.all(np.isfinite(e)) and np.linalg.norm(e) > 0:
+                    q0_fixed[list(g)] = e / np.linalg.norm(e)
     if not isinstance(shooting, (int, np.integer)) or shooting < 1:
         raise ValueError(f"shooting must be a positive integer (number of segments); got {shooting!r}")
+    qd_guess = np.zeros(n_u) if qd0 is None else np.asarray(qd0, dtype=float)
+    mech.check_shapes(jnp.asarray(q0_fixed, f), jnp.asarray(qd_guess, f), t0, params, arguments=("q0", "qd0"))
     independent = mech.independent
     if independent is None:
-        qd_guess = np.zeros(s) if qd0 is None else np.asarray(qd0, dtype=float)
         independent = choose_independent(mech, jnp.asarray(q0_fixed), jnp.asarray(qd_guess), t0, params)
-    observed = tuple(names.index(c) for c in observe)
     if shooting == 1:
         starts, length = (0,), n
     else:
@@ -355,18 +431,32 @@ def prepare(
         max_steps=max_steps,
         differentiation=differentiation,
         defect_weight=defect_weight,
+        positions=positions,
+        rotations=rotations,
+        n_speeds=n_u,
     )
+    coordinate = np.asarray([i < s for i in observed])
+
+    def targets(values, slopes):  # the observed channels' rates: q̇ of a coordinate, a velocity itself
+        return np.where(coordinate, slopes, values)
+
+    # weights of those rates: 1/(their noise), a slope's from the noise σ over the window's duration
+    window = float(data.t[min(RATE_WINDOW, n) - 1] - data.t[0])
+    weights = np.where(coordinate, window, 1.0) / np.asarray(sigma, dtype=float)
+
     # starting initial state: data at t0 for the observed coordinates, rates from a local fit
     q_start, rates = _local_rates(data.t, y, 0)
     q_init = q0_fixed.copy()
-    q_init[list(observed)] = y[0] if q0 is None else q0_fixed[list(observed)]
+    if q0 is None:
+        q_init[list(positions)] = y[0, [column[i] for i in positions]]
     if qd0 is not None:
         v0 = np.asarray(qd0, dtype=float)[list(problem.independent)]
     else:
-        v0 = _independent_from_rates(problem, jnp.asarray(q_init, f), rates, t0, params)
-    theta0 = [np.asarray(par.pack()), q_init[list(observed)], v0]
+        v0 = _independent_from_rates(problem, jnp.asarray(q_init, f), targets(q_start, rates), t0, params, weights)
+    theta0 = [np.asarray(par.pack()), q_init[list(positions)], np.zeros(3 * len(rotations)), v0]
     if shooting > 1:
-        if len(observed) < s:  # unobserved coordinates at the segment starts: simulate the starting guess
+        observed_q = [i for i in observed if i < s]
+        if len(observed_q) < s:  # unobserved coordinates at the segment starts: simulate the starting guess
             th = jnp.concatenate([jnp.asarray(x, f) for x in theta0])
             single = dataclasses.replace(problem, starts=(0,), length=n)
             q_guess = np.asarray(_trajectory(single, th, jnp.asarray(data.t, f)))
@@ -375,12 +465,15 @@ def prepare(
         for st in starts[1:]:
             q_seg = q_guess[st].copy()
             val, rate = _local_rates(data.t, y, st)
-            q_seg[list(observed)] = val
-            v_seg = _independent_from_rates(problem, jnp.asarray(q_seg, f), rate, float(data.t[st]), params)
+            q_seg[observed_q] = val[[column[i] for i in observed_q]]
+            q_seg = nominal_coordinates(mech, s, q_seg)  # a measured quaternion at unit norm
+            v_seg = _independent_from_rates(
+                problem, jnp.asarray(q_seg, f), targets(val, rate), float(data.t[st]), params, weights
+            )
             theta0 += [q_seg, v_seg]
     theta0 = jnp.concatenate([jnp.asarray(x, f).reshape(-1) for x in theta0])
     obs = Observations(jnp.asarray(data.t, f), jnp.asarray(y, f), jnp.asarray(sigma, f))
-    return problem, theta0, obs, names
+    return problem, theta0, obs, channels
 
 
 def _check_tolerance(name: str, value, positive: bool):
@@ -468,11 +561,15 @@ def fit(
     differentiation: str = "auto",
     rank_tol: float = 1e-8,
     progress: bool = False,
+    speed_names: Optional[Sequence[str]] = None,
 ) -> FitResult:
     """Estimate the free parameters of `mech` and its initial state from a record.
 
-    Minimises `Σ_channels Σ_samples ((q_sim − y) / sigma)²` over the free
-    parameters and the initial state, simulating with `jaxnh.simulate`.
+    Minimises `Σ_channels Σ_samples ((y_sim − y) / sigma)²` over the free
+    parameters and the initial state, simulating with `jaxnh.simulate`. A
+    channel is a coordinate or a velocity: for a mechanism with
+    `kinematics` (speeds u, `q̇ = kinematics(q, u, t, p)`), a speed such as a
+    gyro's angular velocity (rad/s); without it, a q̇ named "<coordinate>'".
 
     Arguments:
         mech: the `Mechanism`.
@@ -484,16 +581,26 @@ def fit(
             `("J1", "J2", "U21")`; a profile contributes its trainable values.
         positive: the subset of `free` kept positive by estimating logarithms
             (inertias, ratios). Their standard errors are then relative ones.
-        observe: coordinate names to fit (default: every coordinate the record
-            has), e.g. `("phi1",)` for one encoder.
+        observe: channel names to fit (default: every coordinate and speed
+            the record has), e.g. `("phi1",)` for one encoder; coordinates by
+            `Mechanism.names`, velocities by `speed_names`.
         noise: measurement standard deviation per channel (a dict by name, or
             one number), units of the channel; default: the record's `sigma`
             when it has one, else estimated from the data (`noise_level`). The covariance is scaled by the residual
             variance either way.
-        q0, qd0: starting guesses of the initial coordinates and velocities
-            (s,). The initial positions of observed coordinates and the
-            independent velocities are always estimated; unobserved positions
-            are held at q0 (default 0).
+        q0, qd0: starting guesses of the initial coordinates (n_q,) and
+            velocities — the speeds u0 (n_u,) of a mechanism with
+            `kinematics`, else q̇0 (n_q,). The initial positions of observed
+            coordinates and the independent velocities (speeds) are always
+            estimated; unobserved positions are held at q0 (default 0, and
+            the identity (1, 0, 0, 0) for a quaternion group). A unit
+            quaternion (`Mechanism(quaternions=...)`) with any observed
+            component is estimated as a rotation vector δθ (3 unknowns,
+            rad, labelled "rot_x[e0..e3](t0)" etc.) in the body axes of its
+            nominal value e_nom: e(t0) = e_nom ⊗ exp(δθ/2), which stays a
+            unit quaternion; e_nom is q0's group (normalised) or, without
+            q0, the first sample of the group when all four components are
+            observed, else the identity.
         method, solver, rtol, atol, max_steps: passed to `simulate`; with
             `solver=None` and measured inputs (`jaxnh.profiles.Sampled`) in
             params, `diffrax.Tsit5` (see `fit_solver`). rtol default 1e-8 (the
@@ -526,15 +633,15 @@ def fit(
         rank_tol: relative singular value of the column-scaled Jacobian below
             which a direction counts as undetermined by the data.
         progress: print one line per iteration (iteration, loss, step).
+        speed_names: names of the n_u velocities, for `observe`, `noise` and
+            the labels (default "<coordinate>'" without `kinematics`, i.e.
+            q̇; "u0", "u1", ... with it), e.g. `("vx", "vy", "wx", "wy", "wz")`.
+            With `kinematics` and neither qd0 nor speed_names, n_u is taken
+            as n_q minus one per quaternion group.
 
     Returns:
         A `FitResult`.
     """
-    if getattr(mech, "kinematics", None) is not None:
-        raise ValueError(
-            "fit: a mechanism with `kinematics` (speeds, e.g. a unit quaternion) is not supported yet: the fit "
-            "estimates initial coordinates and velocities one per coordinate; write the mechanism in q̇ to fit it"
-        )
     started = time.perf_counter()
     sigma = getattr(data, "sigma", None)
     if noise is None and sigma:
@@ -573,6 +680,7 @@ def fit(
         rtol=rtol,
         atol=atol,
         max_steps=max_steps,
+        speed_names=speed_names,
     )
     iterations = 0
     theta_ms = None
@@ -645,7 +753,7 @@ def ode_error_in_std(problem: Problem, theta, obs: Observations, r, J) -> float:
     """
     n, k = obs.y.shape
     fine = problem.with_tolerances(problem.rtol * 1e-3, problem.atol * 1e-3)
-    q_fine = np.asarray(_trajectory(fine, jnp.asarray(theta), obs.t))[:, list(problem.observed)]
+    q_fine = np.asarray(_channels(fine, jnp.asarray(theta), obs.t))[:, list(problem.observed)]
     sigma = np.asarray(obs.sigma)
     w = np.asarray(r)[: n * k].reshape(n, k)
     if np.any(w == FAILED_RESIDUAL) or not np.all(np.isfinite(q_fine)):

@@ -4,13 +4,22 @@ Unknowns θ = [free parameters | initial state | segment states]:
 
 * free parameters, as set up by `Parametrisation` (logarithms for positive ones);
 * the initial positions of the observed coordinates (encoder zero offsets
-  and quantisation bias are absorbed here) and the independent velocities
-  at the first sample (the dependent ones follow from the constraints);
+  and quantisation bias are absorbed here), the initial orientation of every
+  unit-quaternion group (`Mechanism(quaternions=...)`) with an observed
+  component, as a rotation vector δθ (3, rad, in the body axes of the nominal
+  orientation e_nom: e(t0) = e_nom ⊗ exp(δθ/2), so it stays a unit
+  quaternion), and the independent velocities — the speeds u of a mechanism
+  with `kinematics`, q̇ otherwise — at the first sample (the dependent ones
+  follow from the constraints);
 * with multiple shooting, the full state (q, independent v) at the start of
-  every further segment.
+  every further segment (a quaternion group there is divided by its norm for
+  the solve, and its continuity defect holds the raw entries at unit norm).
 
-Residuals are `(q_sim − y) / sigma` for every observed channel and sample,
+Channels are the coordinates q (n_q) followed by the velocities u (n_u: the
+speeds with `kinematics`, else q̇); an observed channel is either. Residuals
+are `(channel_sim − y) / sigma` for every observed channel and sample,
 plus, with multiple shooting, the continuity defects between segments.
+A mechanism without `kinematics` is the special case u = q̇ of the same code.
 Their Jacobian comes from forward sensitivities integrated with the state
 (`jaxnh._solve.sensitivity.ForwardSensitivity`: one solve of the state and one
 sensitivity column per unknown), in one `jax.jacfwd` pass: with tens of
@@ -39,6 +48,7 @@ from jaxnh._base.types import ArrayInput
 from jaxnh._equations import as_formulation, Lagrange
 from jaxnh._equations.split import VelocitySplit
 from jaxnh._model.mechanism import Mechanism
+from jaxnh._model.rigid import quat_multiply
 from jaxnh._solve.sensitivity import ForwardSensitivity
 from jaxnh._solve.simulate import simulate
 from jaxnh.identify.parameters import Parametrisation
@@ -53,6 +63,7 @@ __all__ = [
     "solve_least_squares_host",
     "value_and_jacobian",
     "statistics",
+    "rotation_quaternion",
 ]
 
 LM_TAU = 1e-3  # initial Levenberg–Marquardt damping relative to the scaled diag(JᵀJ) (Nielsen's τ)
@@ -79,9 +90,12 @@ class Problem(eqx.Module):
     Attributes:
         mech: the `Mechanism`.
         par: the `Parametrisation` of the free parameters.
-        q0_fixed: initial coordinates (s,) used for the unobserved ones.
-        observed: indices of the observed coordinates (static).
-        independent: indices of the independent velocities (static).
+        q0_fixed: initial coordinates (n_q,) used for the ones not estimated,
+            and the nominal orientation e_nom of every estimated quaternion group.
+        observed: indices of the observed channels (static) in the channel
+            vector `[q (n_q), u (n_u)]`: below n_q a coordinate, from n_q on a
+            velocity (a speed with `kinematics`, else a q̇).
+        independent: indices of the independent velocities (speeds) (static).
         starts: sample index where each shooting segment starts (static;
             `(0,)` for single shooting).
         length: samples per segment (static).
@@ -93,6 +107,11 @@ class Problem(eqx.Module):
             `jaxnh._solve.sensitivity.ForwardSensitivity`) or "reverse"
             (`RecursiveCheckpointAdjoint`; for gradients of a scalar loss
             with many unknowns).
+        positions: indices of the coordinates whose initial values are
+            estimated (static; default None: the observed coordinates).
+        rotations: the quaternion groups (4-tuples of coordinate indices)
+            whose initial orientation is estimated as a rotation vector (static).
+        n_speeds: number n_u of velocities (speeds) (static; default None: n_q).
     """
 
     mech: Mechanism
@@ -108,6 +127,9 @@ class Problem(eqx.Module):
     max_steps: int = eqx.field(static=True)
     differentiation: str = eqx.field(static=True)
     defect_weight: float = eqx.field(static=True)
+    positions: Optional[tuple] = eqx.field(static=True, default=None)
+    rotations: tuple = eqx.field(static=True, default=())
+    n_speeds: Optional[int] = eqx.field(static=True, default=None)
 
     @property
     def rtol(self) -> float:
@@ -136,13 +158,31 @@ class Problem(eqx.Module):
 
     @property
     def n_coords(self) -> int:
-        """Number s of coordinates of the mechanism."""
+        """Number n_q of coordinates of the mechanism."""
         return int(self.q0_fixed.shape[0])
 
     @property
+    def n_velocities(self) -> int:
+        """Number n_u of velocities: the speeds of a mechanism with `kinematics`, else n_q."""
+        return self.n_coords if self.n_speeds is None else int(self.n_speeds)
+
+    @property
+    def estimated_positions(self) -> tuple:
+        """Indices of the coordinates whose initial values are entries of θ."""
+        if self.positions is None:
+            return tuple(i for i in self.observed if i < self.n_coords)
+        return self.positions
+
+    @property
+    def observed_coordinates(self) -> tuple:
+        """The observed channels that are coordinates (indices into q)."""
+        return tuple(i for i in self.observed if i < self.n_coords)
+
+    @property
     def n_initial(self) -> int:
-        """Entries of θ for the initial state: observed positions, independent velocities."""
-        return len(self.observed) + len(self.independent)
+        """Entries of θ for the initial state: estimated positions, 3 per estimated orientation,
+        independent velocities."""
+        return len(self.estimated_positions) + 3 * len(self.rotations) + len(self.independent)
 
     @property
     def n_segment_state(self) -> int:
@@ -154,35 +194,73 @@ class Problem(eqx.Module):
         """Length of θ."""
         return self.n_params + self.n_initial + (len(self.starts) - 1) * self.n_segment_state
 
+    def channel_names(self, names: tuple[str, ...] | list[str]) -> tuple:
+        """The n_q + n_u channel names from `names`: those names themselves when they are n_q + n_u
+        long, or, given the n_q coordinate names of a mechanism without `kinematics`, those
+        followed by the velocities' names "<coordinate>'"."""
+        names = tuple(names)
+        n_q, n_u = self.n_coords, self.n_velocities
+        if len(names) == n_q + n_u:
+            return names
+        if len(names) == n_q and self.mech.kinematics is None:
+            return names + tuple(f"{n}'" for n in names)
+        raise ValueError(f"names: expected the {n_q} coordinate and {n_u} speed names; got {names}")
+
     def labels(self, names: tuple[str, ...] | list[str]) -> tuple:
-        """Labels of θ's entries, given the coordinate names."""
+        """Labels of θ's entries, given the channel names (`channel_names`): "x(t0)" for an initial
+        coordinate, "rot_x[e0..e3](t0)" for a component of an initial rotation vector (rad, body axes
+        of the nominal orientation), "<speed>(t0)" for an initial speed ("phi1'(t0)" for a q̇)."""
+        ch = self.channel_names(names)
+        n_q = self.n_coords
+        coords, speeds = ch[:n_q], ch[n_q:]
         lab = list(self.par.labels)
-        lab += [f"{names[i]}(t0)" for i in self.observed]
-        lab += [f"{names[i]}'(t0)" for i in self.independent]
+        lab += [f"{coords[i]}(t0)" for i in self.estimated_positions]
+        for g in self.rotations:
+            lab += [f"rot_{c}[{coords[g[0]]}..{coords[g[3]]}](t0)" for c in "xyz"]
+        lab += [f"{speeds[i]}(t0)" for i in self.independent]
         for k in range(1, len(self.starts)):
-            lab += [f"{n}(seg{k})" for n in names] + [f"{names[i]}'(seg{k})" for i in self.independent]
+            lab += [f"{n}(seg{k})" for n in coords] + [f"{speeds[i]}(seg{k})" for i in self.independent]
         return tuple(lab)
 
     def split(self) -> VelocitySplit:
-        """The map from independent to all velocities (paper eq. 17)."""
-        s = self.n_coords
+        """The map from independent to all velocities (paper eq. 17), in the speeds."""
+        s = self.n_velocities
         m = s - len(self.independent)
         return VelocitySplit(self.mech, s, m)
 
+    def channel_values(self, q: jax.Array, u: jax.Array) -> jax.Array:
+        """The channel vector(s) `[q, u]` (..., n_q + n_u) from coordinates and velocities (speeds)."""
+        return jnp.concatenate([q, u], axis=-1)
+
     def initial_state(self, theta: jax.Array, t0: jax.typing.ArrayLike, params: Any) -> tuple[jax.Array, jax.Array]:
-        """(q0, qd0) at the first sample from θ (dependent velocities from the constraints)."""
-        P, k = self.n_params, len(self.observed)
+        """(q0, u0) at the first sample from θ (dependent velocities from the constraints; u0 are the
+        speeds of a mechanism with `kinematics`, else q̇0)."""
+        P = self.n_params
+        positions = self.estimated_positions
+        k = len(positions)
         q0 = self.q0_fixed
         if k:
-            q0 = q0.at[jnp.asarray(self.observed)].set(theta[P : P + k])
-        v0 = theta[P + k : P + self.n_initial]
+            q0 = q0.at[jnp.asarray(positions)].set(theta[P : P + k])
+        j = P + k
+        for g in self.rotations:
+            e = quat_multiply(self.q0_fixed[jnp.asarray(g)], rotation_quaternion(theta[j : j + 3]))
+            q0 = q0.at[jnp.asarray(g)].set(e.astype(q0.dtype))
+            j += 3
+        v0 = theta[j : P + self.n_initial]
         return q0, self.split().velocities(q0, v0, t0, params, self.independent)
 
+    def _unit_groups(self, q: jax.Array) -> jax.Array:
+        """q with each quaternion group divided by its norm."""
+        for g in self.mech.quaternions:
+            idx = jnp.asarray(g)
+            q = q.at[idx].set(q[idx] / jnp.linalg.norm(q[idx]))
+        return q
+
     def segment_states(self, theta: jax.Array, t_starts: jax.Array, params: Any) -> tuple[jax.Array, jax.Array]:
-        """(q, qd) at the start of segments 1.. (each (S−1, s))."""
+        """(q, u) at the start of segments 1.. (each (S−1, n_q), (S−1, n_u)), quaternion groups at unit norm."""
         base = self.n_params + self.n_initial
         X = theta[base:].reshape(len(self.starts) - 1, self.n_segment_state)
-        q, v = X[:, : self.n_coords], X[:, self.n_coords :]
+        q, v = jax.vmap(self._unit_groups)(X[:, : self.n_coords]), X[:, self.n_coords :]
         qd = jax.vmap(lambda q_, v_, t_: self.split().velocities(q_, v_, t_, params, self.independent))(q, v, t_starts)
         return q, qd
 
@@ -209,7 +287,7 @@ class Problem(eqx.Module):
             adjoint=adjoint,
             throw=False,
         )
-        return sol.q, sol.qd
+        return sol.q, sol.u
 
     def trajectory(
         self, theta: jax.Array, t: jax.Array, adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None
@@ -218,6 +296,14 @@ class Problem(eqx.Module):
         params = self.par.unpack(theta[: self.n_params])
         q0, qd0 = self.initial_state(theta, t[0], params)
         return self._simulate(params, q0, qd0, t, adjoint)[0]
+
+    def channels(
+        self, theta: jax.Array, t: jax.Array, adjoint: Optional[diffrax.AbstractAdjoint | ForwardSensitivity] = None
+    ) -> jax.Array:
+        """Simulated channels `[q, u]` (n, n_q + n_u) at the sample times t from θ (single shooting)."""
+        params = self.par.unpack(theta[: self.n_params])
+        q0, u0 = self.initial_state(theta, t[0], params)
+        return self.channel_values(*self._simulate(params, q0, u0, t, adjoint))
 
     def raw_residuals(self, theta: jax.Array, data: Observations) -> jax.Array:
         """Weighted residuals (vector) without the custom Jacobian rule."""
@@ -232,8 +318,8 @@ class Problem(eqx.Module):
         obs = jnp.asarray(self.observed)
         if len(self.starts) == 1:
             q0, qd0 = self.initial_state(theta, data.t[0], params)
-            q, _ = self._simulate(params, q0, qd0, data.t, adjoint)
-            r = (q[:, obs] - data.y) / data.sigma
+            y = self.channel_values(*self._simulate(params, q0, qd0, data.t, adjoint))
+            r = (y[:, obs] - data.y) / data.sigma
             return _finite(r.reshape(-1))
         # multiple shooting: equal-length segments, the last one flush with the end
         L = self.length
@@ -244,17 +330,22 @@ class Problem(eqx.Module):
         qs, qds = self.segment_states(theta, ts[1:, 0], params)
         Q0 = jnp.concatenate([q0[None], qs])
         QD0 = jnp.concatenate([qd0[None], qds])
-        q, qd = jax.vmap(lambda a, b, c: self._simulate(params, a, b, c, adjoint))(Q0, QD0, ts)  # (S, L, s)
+        q, qd = jax.vmap(lambda a, b, c: self._simulate(params, a, b, c, adjoint))(Q0, QD0, ts)  # (S, L, n)
         owner = np.searchsorted(np.asarray(self.starts), idx_np, side="right") - 1
         own = jnp.asarray(owner == np.arange(len(self.starts))[:, None])  # each sample counted once
-        r = jnp.where(own[..., None], (q[..., obs] - data.y[idx]) / data.sigma, 0.0)
+        y = self.channel_values(q, qd)
+        r = jnp.where(own[..., None], (y[..., obs] - data.y[idx]) / data.sigma, 0.0)
         # continuity defects at the start of segments 1..: state reached by the previous segment
         local = np.asarray(self.starts[1:]) - np.asarray(self.starts[:-1])
         prev = np.arange(len(self.starts) - 1)
-        scale_q = jnp.full((self.n_coords,), jnp.mean(data.sigma)).at[obs].set(data.sigma)
+        coords = [j for j, i in enumerate(self.observed) if i < self.n_coords]
+        scale_q = jnp.full((self.n_coords,), jnp.mean(data.sigma))
+        if coords:
+            scale_q = scale_q.at[jnp.asarray(self.observed_coordinates)].set(data.sigma[jnp.asarray(coords)])
         seg_T = (data.t[-1] - data.t[0]) / len(self.starts)
         ind = jnp.asarray(self.independent)
-        dq = (q[prev, local] - qs) / scale_q
+        raw = theta[self.n_params + self.n_initial :].reshape(len(self.starts) - 1, self.n_segment_state)
+        dq = (q[prev, local] - raw[:, : self.n_coords]) / scale_q  # the raw entries: quaternions held at unit norm
         dv = (qd[prev, local][:, ind] - qds[:, ind]) * seg_T / jnp.mean(scale_q)
         defects = self.defect_weight * jnp.concatenate([dq.reshape(-1), dv.reshape(-1)])
         return _finite(jnp.concatenate([r.reshape(-1), defects]))
@@ -277,6 +368,26 @@ class Problem(eqx.Module):
 
 def _finite(r):
     return jnp.where(jnp.isfinite(r), r, FAILED_RESIDUAL)
+
+
+SMALL_ROTATION2 = 1e-6
+"""|δθ|² (rad²) below which `rotation_quaternion` uses its Taylor series (error below 1e-20)."""
+
+
+def rotation_quaternion(rotation: jax.Array) -> jax.Array:
+    """exp(δθ/2) = (cos(|δθ|/2), sin(|δθ|/2) δθ/|δθ|), the unit quaternion (4,) of a rotation by |δθ| rad
+    about the axis δθ/|δθ| (δθ (3,), rad; `jaxnh.rigid.quaternion_from_axis_angle` of that axis and angle).
+
+    Smooth at δθ = 0, where it is the identity (1, 0, 0, 0) and its derivative is ½ (0, I): the
+    derivatives of every order are finite there (a Taylor series below |δθ|² = `SMALL_ROTATION2`).
+    `e_nom ⊗ rotation_quaternion(δθ)` turns the orientation e_nom by δθ in its body axes.
+    """
+    a2 = jnp.sum(rotation * rotation)
+    small = a2 < SMALL_ROTATION2
+    a = jnp.sqrt(jnp.where(small, 1.0, a2))
+    c = jnp.where(small, 1.0 - a2 / 8.0 + a2 * a2 / 384.0, jnp.cos(0.5 * a))
+    s = jnp.where(small, 0.5 - a2 / 48.0 + a2 * a2 / 3840.0, jnp.sin(0.5 * a) / a)
+    return jnp.concatenate([c[None], s * rotation])
 
 
 @eqx.filter_custom_jvp
