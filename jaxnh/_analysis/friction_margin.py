@@ -91,7 +91,7 @@ def stick_margin(
             out.append(norm / (mus * N))
         return jnp.stack(out)
 
-    utilisation = jax.vmap(one)(sol.q, sol.qd, ts_, sol.multipliers)
+    utilisation = jax.vmap(one)(sol.q, sol.u, ts_, sol.multipliers)  # (the speeds, with `kinematics`)
     margin = 1.0 - utilisation
     soft = -temperature * jax.scipy.special.logsumexp(-margin / temperature, axis=0)
     return StickMargin(

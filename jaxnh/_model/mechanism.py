@@ -116,7 +116,8 @@ class Mechanism(eqx.Module):
             whatever force it takes). Each contact names rows of `constraints`
             written as slip velocities (m/s); they hold while the force they
             need is inside the static friction cone and slip otherwise
-            (see the friction page of the documentation).
+            (see the friction page of the documentation). With `kinematics`
+            the rows, and the contacts' functions, take the speeds u.
         dependent: indices of h coordinates solved from the h holonomic
             constraints (the block `∂g/∂q_D` must be invertible along the
             motion). `simulate` (and so `fit` and `sweep`) then integrates only
@@ -206,11 +207,6 @@ class Mechanism(eqx.Module):
             raise ValueError(
                 "Mechanism: `quaternions` name coordinates whose rates come from angular-velocity speeds: give "
                 "`kinematics=` too (e.g. with jaxnh.rigid.quaternion_rate), and write T in those speeds"
-            )
-        if self.kinematics is not None and self.contacts:
-            raise ValueError(
-                "Mechanism: friction `contacts` with `kinematics` (speeds) are not supported yet; write the "
-                "mechanism in q̇ (without `kinematics`) to use contacts"
             )
         if self.kinematics is not None and self.dependent is not None:
             raise ValueError(

@@ -35,6 +35,7 @@ __all__ = [
     "holonomic_consistent",
     "on_branch",
     "initial_checks",
+    "speeds_checks",
     "diagnose_stall",
     "spectral_radius",
     "non_finite_function",
@@ -136,6 +137,27 @@ def _agrees_at(mech, q, qd, t, params):
     return mass_ok & terms_ok & jnp.all(jnp.isfinite(H)) & jnp.all(jnp.isfinite(g0))
 
 
+def speeds_checks(mech, q, qd, t, params) -> tuple:
+    """The checks of an initial state that only a mechanism in speeds has, as (ok, STATUS item)
+    pairs in the order they are reported (none without `kinematics`): each `quaternions` group a
+    unit quaternion to √eps (the solve then keeps it at 1), and speeds that give every velocity
+    (no constraint hidden in q̇ = K u, `speeds_span_velocities`), at q0 and at a second
+    configuration (a commutator may vanish at one point by accident). Shared by `simulate`'s
+    solve and the friction solve."""
+    out = []
+    if mech.quaternions:
+        eps = jnp.finfo(q.dtype).eps
+        unit = jnp.all(
+            jnp.stack([jnp.abs(jnp.linalg.norm(q[jnp.asarray(g)]) - 1) <= jnp.sqrt(eps) for g in mech.quaternions])
+        )
+        out.append((unit, STATUS.quaternion_not_unit))
+    if mech.kinematics is not None:
+        shifted = q + 0.1 * (1 + jnp.abs(q)) * jnp.linspace(0.5, 1.0, q.shape[0], dtype=q.dtype)
+        spans = speeds_span_velocities(mech, q, qd, t, params) & speeds_span_velocities(mech, shifted, qd, t, params)
+        out.append((spans, STATUS.speeds_incomplete))
+    return tuple(out)
+
+
 def initial_checks(form, q, qd, t, params):
     """(ok, STATUS, inertias) for the initial state (q, qd) at t of a bound formulation; the
     inertias (the mass matrix's diagonal, kg·m² or kg) are the reference of `diagnose_stall`."""
@@ -148,19 +170,9 @@ def initial_checks(form, q, qd, t, params):
         agrees = acceleration_energy_agrees(mech, q, qd, t, params)
         status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
         ok = ok & agrees
-    if mech.quaternions:  # each named group a unit quaternion to √eps (the solve then keeps it at 1)
-        eps = jnp.finfo(q.dtype).eps
-        unit = jnp.all(
-            jnp.stack([jnp.abs(jnp.linalg.norm(q[jnp.asarray(g)]) - 1) <= jnp.sqrt(eps) for g in mech.quaternions])
-        )
-        status = STATUS.where(ok & ~unit, STATUS.quaternion_not_unit, status)
-        ok = ok & unit
-    if mech.kinematics is not None:  # the speeds give every velocity (no constraint hidden in q̇ = K u),
-        # at q0 and at a second configuration (a commutator may vanish at one point by accident)
-        shifted = q + 0.1 * (1 + jnp.abs(q)) * jnp.linspace(0.5, 1.0, q.shape[0], dtype=q.dtype)
-        spans = speeds_span_velocities(mech, q, qd, t, params) & speeds_span_velocities(mech, shifted, qd, t, params)
-        status = STATUS.where(ok & ~spans, STATUS.speeds_incomplete, status)
-        ok = ok & spans
+    for good, item in speeds_checks(mech, q, qd, t, params):
+        status = STATUS.where(ok & ~good, item, status)
+        ok = ok & good
     if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
         on = holonomic_consistent(mech, q, t, params)
         status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)

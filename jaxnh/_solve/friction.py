@@ -69,8 +69,18 @@ from jaxnh._base.linalg import (
 )
 from jaxnh._base.status import error_for, is_traced, raise_in_graph, STATUS
 from jaxnh._equations import Appell, Formulation, Lagrange
-from jaxnh._equations.split import best_partition, block_determinant, permutation, place, select, split_regular
-from jaxnh._equations.step_maps import StepMaps
+from jaxnh._equations.split import (
+    best_partition,
+    block_determinant,
+    partition_from_dependent,
+    partition_quality,
+    permutation,
+    place,
+    select,
+    split_regular,
+    SWITCH_BELOW,
+)
+from jaxnh._equations.step_maps import normalize_quaternions, StepMaps, UnitQuaternions
 from jaxnh._equations.terms import constraint_terms, mass_and_velocity_terms, projected_terms
 from jaxnh._model.checks import (
     consistency_tolerance,
@@ -80,7 +90,7 @@ from jaxnh._model.checks import (
 )
 from jaxnh._model.contacts import ContactLaw, Coulomb
 from jaxnh._model.mechanism import Mechanism
-from jaxnh._solve.diagnose import acceleration_energy_agrees
+from jaxnh._solve.diagnose import acceleration_energy_agrees, speeds_checks
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.sensitivity import diffrax_solve, forward_mode_outputs, ForwardSensitivity
 from jaxnh._solve.solution import Solution
@@ -321,13 +331,44 @@ def _law_force(law: ContactLaw, speed, N, mus, muk, q, qd, t, params):
 
 
 class _Friction(eqx.Module):
-    """A mechanism with contacts, bound to its sizes and to a formulation ("lagrange" or "appell")."""
+    """A mechanism with contacts, bound to its sizes and to a formulation ("lagrange" or "appell").
+
+    s is the number of velocities: the speeds u with `kinematics` (then every "qd" below is u,
+    the rows and their multipliers are written in u, and the coordinates move with
+    `Mechanism.rate`), else q̇; nq the number of coordinates (s without `kinematics`)."""
 
     mech: Mechanism
     s: int = eqx.field(static=True)
     m: int = eqx.field(static=True)
     kind: str = eqx.field(static=True)
     independent: Optional[tuple] = eqx.field(static=True, default=None)
+    nq: int = eqx.field(static=True, default=-1)
+
+    @property
+    def switching(self) -> bool:
+        """Whether Appell's partition may change within a segment (no fixed `independent`): it is
+        then carried in the state, as the m dependent indices (floats), and re-chosen before a step
+        at which its dependent block has become ill-conditioned, as simulate's Appell form does
+        (a block that turns with the body, such as rows written with body-axes angular speeds,
+        passes through singular within a segment)."""
+        return self.kind == "appell" and self.independent is None and self.m > 0
+
+    def perm_in(self, y, perm):
+        """The partition in use for the state y of Appell's form: the one carried in y when
+        `switching`, else `perm` (the segment's)."""
+        if not self.switching:
+            return perm
+        return partition_from_dependent(jnp.round(y[3]).astype(jnp.int32), self.s)
+
+    @property
+    def n_coordinates(self) -> int:
+        """The number of coordinates (nq; s when not given)."""
+        return self.s if self.nq < 0 else self.nq
+
+    def rate(self, q, qd, t, params):
+        """dq/dt (nq,) from the velocities (speeds): `Mechanism.rate`, the velocities themselves
+        without `kinematics`."""
+        return self.mech.rate(q, qd, t, params).astype(q.dtype)
 
     # static layout of the contacts
     @property
@@ -475,6 +516,10 @@ class _Friction(eqx.Module):
             wj = pick(w, idx)
             a = jnp.sum(wj * d)
             v = (jnp.abs(a) + mode.tau[j]) * d + (wj - a * d)
+            # v/‖v‖ does not change with a positive factor: v is scaled to its largest entry first,
+            # so that a slip released at rest (w = 0, tau = √eps × a velocity scale that is itself
+            # ~√tiny there) gives d, not a vector that `_safe_norm`'s tiny shrinks towards 0
+            v = v / jnp.maximum(jnp.max(jnp.abs(v)), jnp.finfo(v.dtype).tiny)
             out.append(v / _safe_norm(v))
         return jnp.concatenate(out)
 
@@ -615,12 +660,15 @@ class _Friction(eqx.Module):
         B = place(
             jnp.concatenate([jnp.eye(k, dtype=q.dtype), jnp.zeros((k, self.nf), q.dtype)], axis=1), X[:, 1:], perm
         )
-        _, bvec = jax.jvp(lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (qd, jnp.ones_like(t)))
+        _, bvec = jax.jvp(
+            lambda q_, t_: mech.constraint(q_, qd, t_, params), (q, t), (self.rate(q, qd, t, params), jnp.ones_like(t))
+        )
         beta = place(jnp.zeros((k,), q.dtype), solve_square(AD, -bvec), perm)
         return qd, B, beta, A
 
     def appell_field(self, t, y, params, mode: Mode, perm):
-        q, v, u, _ = y
+        q, v, u = y[:3]
+        perm = self.perm_in(y, perm)
         mech, k = self.mech, self.k
         qd, B, beta, A = self.appell_rates(q, v, u, t, params, mode, perm)
         rel = self.released(mode.slipping, q.dtype)
@@ -639,25 +687,29 @@ class _Friction(eqx.Module):
         keep = jnp.concatenate([jnp.ones((k,), q.dtype), rel])
         K = K * keep[:, None] * keep[None, :] + jnp.diag(1.0 - keep)
         z = solve_spd(K, rhs * keep)
-        return (qd, z[:k], z[k:], self.rates(w, F, mode))
+        code = (jnp.zeros_like(y[3]),) if self.switching else ()
+        return (self.rate(q, qd, t, params), z[:k], z[k:], *code, self.rates(w, F, mode))
 
     def lagrange_field(self, t, y, params, mode: Mode):
         q, qd, _ = y
         qdd, lam, w, _, _ = self.kkt(q, qd, t, params, mode)
         F = pick(lam, self.flat) * self.released(mode.slipping, q.dtype)
-        return (qd, qdd, self.rates(w, F, mode))
+        return (self.rate(q, qd, t, params), qdd, self.rates(w, F, mode))
 
     # the integrated state of a segment
     def state(self, q, qd, t, params, mode: Mode, perm, acc):
         if self.kind == "lagrange":
             return (q, qd, acc)
         w = self.slip(q, qd, t, params) * self.released(mode.slipping, q.dtype)
-        return (q, select(qd, perm, self.k)[0], w, acc)
+        code = (perm[self.k :].astype(q.dtype),) if self.switching else ()
+        return (q, select(qd, perm, self.k)[0], w, *code, acc)
 
     def unpack(self, y, t, params, mode: Mode, perm):
+        # unit quaternions rescaled, as simulate's formulations do (a report between steps: interpolated)
+        q = normalize_quaternions(y[0], self.mech.quaternions)
         if self.kind == "lagrange":
-            return y[0], y[1]
-        return y[0], self.appell_velocities(y[0], y[1], y[2], t, params, mode, perm)
+            return q, y[1]
+        return q, self.appell_velocities(q, y[1], y[2], t, params, mode, self.perm_in(y, perm))
 
     def partition(self, q, qd, t, params):
         if self.kind == "lagrange":
@@ -905,11 +957,42 @@ class _Watch(StepMaps):
       the guard's values and rates at both ends puts that minimum at no less than half the smaller end
       value. Steps near a guard's minimum so shrink until they resolve it: then a minimum below zero
       is an end of a step, where the event finds it, and a minimum above zero is accepted.
-    * Appell's form: fail a step during which the dependent block changed sign (passed through
-      singular), since the partition is fixed within a segment.
+    * Appell's form: a step during which the dependent block changed sign (passed through
+      singular) is rejected, and the partition re-chosen before a step at which the block has
+      become ill-conditioned (`pre`), as in simulate's Appell form; with a fixed `independent`
+      the partition cannot change, and such a step fails the solve.
+    * Unit quaternions (`Mechanism.quaternions`): rescaled to unit norm at the end of every step,
+      and the norm direction taken out of the step's error estimate, as in simulate's solve
+      (`UnitQuaternions`, applied to the coordinates, the first part of the state).
     """
 
     system: _Friction
+
+    def project_error(self, y1, y_error, args: _Args, /):
+        """The step's error estimate without its components along each unit quaternion."""
+        groups = self.system.mech.quaternions
+        if not groups:
+            return y_error
+        dq = UnitQuaternions(None, groups).project_error(y1[0], y_error[0], args)
+        return (dq, *y_error[1:])
+
+    def pre(self, t, y, args: _Args, /):
+        """Appell's form (`_Friction.switching`): the state with the partition re-chosen when the
+        dependent block in use is below `SWITCH_BELOW` of the best one's volume (the independent
+        velocities re-read from the velocities; the released rows' slip velocities are the rows'
+        own and do not change), and whether it was."""
+        f = self.system
+        if not f.switching:
+            return y, False
+        q, v, w, _, acc = y
+        perm = f.perm_in(y, args.perm)
+        qd = f.appell_velocities(q, v, w, t, args.params, args.mode, perm)
+        qs, qds, ts_, ps = no_grad((q, qd, t, args.params))
+        ratio, _, best = partition_quality(f.mech, qs, qds, ts_, ps, perm, f.k)
+        switch = (ratio < SWITCH_BELOW) & args.ok
+        new = jnp.where(switch, best, perm)
+        v_new = jnp.where(switch, select(qd, new, f.k)[0], v)
+        return (q, v_new, w, new[f.k :].astype(y[3].dtype), acc), switch
 
     def _guards_and_rates(self, t, y, args: _Args):
         def g(t_, y_):
@@ -921,6 +1004,8 @@ class _Watch(StepMaps):
 
     def post(self, t0, y0, t1, y1, args: _Args, /):
         f = self.system
+        if f.mech.quaternions:
+            y1 = (normalize_quaternions(y1[0], f.mech.quaternions), *y1[1:])
         # a check: it decides a rejection, no derivative flows through it (and none is traced)
         t0s, y0s, t1s, y1s, args_s = no_grad((t0, y0, t1, y1, args))
         (g0, d0), (g1, d1) = self._guards_and_rates(t0s, y0s, args_s), self._guards_and_rates(t1s, y1s, args_s)
@@ -931,10 +1016,13 @@ class _Watch(StepMaps):
         if f.kind != "appell":
             return y1, None, reject, False
         det = []
+        perm = f.perm_in(y1s, args_s.perm)  # (the step's: a partition changes only before a step)
         for y, t in ((y0s, t0s), (y1s, t1s)):
             A = jax.jacfwd(lambda x: f.mech.constraint(y[0], x, t, args_s.params))(jnp.zeros((f.s,), y[0].dtype))
-            det.append(block_determinant(A, args_s.perm, f.k))
+            det.append(block_determinant(A, perm, f.k))
         crossed = ((jnp.sign(det[0]) != jnp.sign(det[1])) | ~jnp.isfinite(det[1])) & args_s.ok
+        if f.switching:  # rejected: the step shrinks until `pre` sees the block ill-conditioned
+            return y1, None, reject | crossed, False
         return y1, None, reject, crossed
 
 
@@ -958,6 +1046,7 @@ def _initial_checks(f: _Friction, q, qd, t, params):
         status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
         ok = ok & agrees
     for good, item in (
+        *speeds_checks(mech, q, qd, t, params),
         *rows.leading,
         (values_ok, STATUS.friction_values_invalid),
         (split_ok, STATUS.singular_split),
@@ -1027,13 +1116,15 @@ def _run_traced(
         if graph_throw:
             q0r = raise_in_graph(q0r, status0)
     mode0 = _where_tree(ok, mode0, dummy)
+    if f.mech.quaternions:  # (unit to √eps, checked above: to rounding from here on, as in simulate)
+        q0r = normalize_quaternions(q0r, f.mech.quaternions)
     tol = ROOT_TOLERANCE * float(jnp.finfo(dtype).eps)
     event = diffrax.Event(_Guard(f), root_finder=_EventRootFinder(rtol=tol, atol=tol), direction=True)
     maps = _Watch(f)
     field = _Field(f)
     acc0 = jnp.zeros((nc, 2), dtype)
     reports0 = (
-        jnp.full((n, f.s), jnp.nan, dtype),
+        jnp.full((n, f.n_coordinates), jnp.nan, dtype),
         jnp.full((n, f.s), jnp.nan, dtype),
         jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), dummy),
         jnp.zeros((n,), bool),
@@ -1131,7 +1222,7 @@ def _run_traced(
             # a law's force can turn bad with the state (the slip speed) as well as with t: it is read at the
             # event and at the state carried on to the probe's time along the velocities and accelerations
             qdd1 = f.kkt(qs1, qds1, ts1, ps1, mode_s)[0]
-            ahead = (qs1 + (probe - ts1) * qds1, qds1 + (probe - ts1) * qdd1, probe)
+            ahead = (qs1 + (probe - ts1) * f.rate(qs1, qds1, ts1, ps1), qds1 + (probe - ts1) * qdd1, probe)
             law = jnp.maximum(f.law_codes(qs1, qds1, ts1, ps1, mode_s), f.law_codes(*ahead, ps1, mode_s))
             bad = jnp.where(bad != 0, bad, law)
         any_bad = jnp.any(bad != 0)
@@ -1245,10 +1336,18 @@ def _run_traced(
         x = jnp.where(bcast(reached, x), x, jnp.nan) if x.shape[:1] == (n,) else x
         return jnp.where(ok, x, jnp.nan) + link.astype(x.dtype)
 
+    u = None
+    if f.mech.has_speeds:  # the solve's velocities are the speeds; qd is dq/dt (at the reports reached)
+        safe = jax.vmap(lambda a, b, t: f.rate(a, b, t, params))(
+            jnp.where(reached[:, None], q, 0.0), jnp.where(reached[:, None], qd, 0.0), tsr
+        )
+        u, qd = qd, safe
     q, qd = finish(q), finish(qd)
+    u = None if u is None else finish(u)
     out = {key: finish(v) for key, v in out.items()}
     if graph_throw:
         q, qd = raise_in_graph(q, status), raise_in_graph(qd, status)
+        u = None if u is None else raise_in_graph(u, status)
         out = {key: raise_in_graph(v, status) for key, v in out.items()}
     diagnostics = ContactDiagnostics(
         names=tuple(c.label(i) for i, c in enumerate(f.contacts)),
@@ -1281,12 +1380,13 @@ def _run_traced(
         ts=ts,
         q=q,
         qd=qd,
+        speeds=u,
         multipliers=out.get("multipliers"),
         energy=out.get("energy"),
         residual=out.get("residual"),
         stats=stats,
         status=status,
-        names=f.mech.coordinate_names(f.s),
+        names=f.mech.coordinate_names(f.n_coordinates),
         slipping=rep_mode.slipping & reached[:, None],
         contacts=diagnostics,
     )
@@ -1366,7 +1466,7 @@ def simulate_friction(
         )
     t0 = ts[0]
     m = mech.check_shapes(q0, qd0, t0, params)
-    s = q0.shape[0]
+    s = qd0.shape[0]  # velocities (speeds, with `kinematics`)
     if isinstance(form, Appell) and m > s:
         # (m = s is a mechanism that moves only while a contact slips: while all stick it has no
         # independent velocity, and the released rows' slip velocities are its quasi-velocities)
@@ -1377,7 +1477,7 @@ def simulate_friction(
     independent = form.independent if isinstance(form, Appell) else None
     if independent is None and isinstance(form, Appell):
         independent = mech.independent
-    f = _Friction(mech, s, m, "lagrange" if isinstance(form, Lagrange) else "appell", independent)
+    f = _Friction(mech, s, m, "lagrange" if isinstance(form, Lagrange) else "appell", independent, q0.shape[0])
     if solver is None:  # (simulate passes its default solver)
         solver = diffrax.Tsit5()
     if coarse_interpolant(solver) and not isinstance(stepsize_controller, diffrax.ConstantStepSize):
