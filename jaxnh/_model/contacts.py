@@ -485,9 +485,12 @@ def check_contact_shapes(contacts: tuple, n_nonholonomic: int, m: int, q, qd, t,
                 out = eqx.filter_eval_shape(f, q, qd, t, params)
             except Exception as e:  # re-raise with the function named
                 raise type(e)(f"Mechanism: contacts[{i}].{name} failed when called with (q, qd, t, params): {e}") from e
-            if getattr(out, "shape", None) not in ((), (1,)):
+            # a Python number (e.g. a value of params held static by filter_eval_shape) is a scalar
+            shape = () if isinstance(out, (int, float, np.number)) else getattr(out, "shape", None)
+            if shape not in ((), (1,)):
+                got = f"shape {shape}" if shape is not None else f"a {type(out).__name__}"
                 raise ValueError(
-                    f"Mechanism: contacts[{i}].{name} must return a scalar; got shape {getattr(out, 'shape', None)}"
+                    f"Mechanism: contacts[{i}].{name} must return a scalar (a JAX array or number); got {got}"
                 )
         if type(c.law) is Coulomb:
             continue
