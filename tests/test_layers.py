@@ -216,3 +216,20 @@ def test_the_layering_check_can_fail(tmp_path, monkeypatch):
         pytest.fail.Exception, match="import cycle: jaxnh._base.low -> jaxnh._base.ring -> jaxnh._base.low"
     ):
         test_no_cycle()
+
+
+def test_every_required_dependency_is_imported_by_the_package():
+    """pyproject's runtime dependencies are the ones jaxnh imports (an unused one belongs to an
+    extra: scipy, which only the tests' references use, was required and never imported)."""
+    import tomllib
+
+    project = tomllib.loads((PACKAGE.parent / "pyproject.toml").read_text())["project"]
+    required = {re.split(r"[\s\[<>=!~;]", d, maxsplit=1)[0].lower().replace("-", "_") for d in project["dependencies"]}
+    imported = set()
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                imported.add(node.module.split(".")[0])
+    assert not required - imported, f"required but never imported by jaxnh: {sorted(required - imported)}"
