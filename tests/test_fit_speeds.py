@@ -5,7 +5,7 @@
   gyro's ω: a fit to a synthetic record (jaxnh's own simulation plus seeded Gaussian noise)
   lands within 4 of its own standard errors of the truth, for every unknown, the initial
   orientation's rotation vector included; on the noise-free record it recovers k² and a to a
-  relative 1e3·rtol; the experiment's information is finite and positive definite, and its
+  relative 1e2·rtol; the experiment's information is finite and positive definite, and its
   predicted standard errors are the fit's.
 * The Chaplygin sleigh pushed by a thrust, once in q̇ (no `kinematics`) and once in the speeds
   u = M q̇ (the velocity in axes turned by a fixed angle, and θ̇): the two fits of one record, and
@@ -134,14 +134,15 @@ def test_fit_in_speeds_lands_within_its_interval(ball, ball_fit):
 
 @pytest.mark.slow
 def test_fit_in_speeds_recovers_the_truth_without_noise(ball):
-    """Noise-free record: k² and a to a relative 1e3·rtol (the record and the fit's solves differ by
-    the integrator's error, of order rtol relative to the motion, amplified by the conditioning)."""
+    """Noise-free record: k² and a to a relative 1e2·rtol (the record and the fit's solves differ by
+    the integrator's error, of order rtol relative to the motion, amplified by the conditioning;
+    measured 1.0e-10 and 6.0e-11 relative, initial coordinates 2.4e-10, speeds 1.6e-9)."""
     res = _ball_fit(ball, noise=False)
     assert res.converged, res.summary()
     for name, true in (("k2", 0.4), ("a", 0.1)):
-        assert abs(res.estimates[name]["value"] - true) <= 1e3 * RTOL * true, (name, res.estimates[name])
-    np.testing.assert_allclose(res.q0, np.asarray(ball[2]), atol=1e3 * RTOL)
-    np.testing.assert_allclose(res.qd0, np.asarray(ball[3]), atol=1e3 * RTOL)
+        assert abs(res.estimates[name]["value"] - true) <= 1e2 * RTOL * true, (name, res.estimates[name])
+    np.testing.assert_allclose(res.q0, np.asarray(ball[2]), atol=1e2 * RTOL)
+    np.testing.assert_allclose(res.qd0, np.asarray(ball[3]), atol=1e2 * RTOL)
 
 
 @pytest.mark.slow
@@ -238,20 +239,23 @@ def _cart_fits(record):
 def test_fit_in_speeds_agrees_with_the_fit_in_qdot(cart_record):
     """One record, one mechanism written twice: the parameters agree to 0.1 of their standard errors
     (each fit stops within GN_STOP_TOL = 0.05 standard errors of its minimum), their standard errors
-    to 1e-3 relative; the initial speeds are M q̇0."""
+    to 2 % (each is evaluated where its fit stopped: measured 1e-2 standard errors apart, which moved
+    I_C's standard error, 6.5 % of its value, by 0.4 %); the initial speeds are M q̇0."""
     a, b = _cart_fits(cart_record)
     assert a.converged and b.converged
     for i, name in enumerate(CART_FREE):
         assert abs(a.values[i] - b.values[i]) <= 0.1 * a.std[i], (name, a.values[i], b.values[i], a.std[i])
-        assert abs(b.std[i] / a.std[i] - 1.0) < 1e-3, (name, a.std[i], b.std[i])
+        assert abs(b.std[i] / a.std[i] - 1.0) < 2e-2, (name, a.std[i], b.std[i])
         assert abs(a.values[i] - float(TRUTH[name])) <= CALIBRATION * a.std[i]
     np.testing.assert_allclose(b.qd0, M @ a.qd0, atol=0.1 * float(np.max(b.std[6:])))
     assert a.labels[3:6] == ("x(t0)", "y(t0)", "theta(t0)") == b.labels[3:6]
 
 
+@pytest.mark.slow
 def test_experiment_in_speeds_agrees_with_the_experiment_in_qdot():
-    """The same design, twice: the predicted standard errors of the parameters agree to 1e-6
-    relative (both at the nominal motion; they differ by the integrators' errors at rtol 1e-10)."""
+    """The same design, twice: the predicted standard errors of the parameters agree to 1e-8
+    relative (both at the nominal motion; they differ by the integrators' errors at rtol 1e-10:
+    measured 1.4e-11)."""
     ts = np.linspace(0.0, 3.0, 61)
     kw: dict[str, Any] = dict(free=CART_FREE, positive=CART_FREE, q0=np.zeros(3), rtol=RTOL, atol=1e-12)
     a = predict(experiment(CART_QD, TRUTH, ts, observe=("x", "y", "theta'"), noise=CART_NOISE, qd0=QD0, **kw))
@@ -263,4 +267,20 @@ def test_experiment_in_speeds_agrees_with_the_experiment_in_qdot():
     )  # fmt: skip
     for F in (a.fisher, b.fisher):
         assert np.all(np.isfinite(F)) and np.min(np.linalg.eigvalsh(F)) > 0
-    np.testing.assert_allclose(b.std[:3], a.std[:3], rtol=1e-6)
+    np.testing.assert_allclose(b.std[:3], a.std[:3], rtol=1e-8)
+
+
+@pytest.mark.slow
+def test_multiple_shooting_in_speeds_reaches_the_same_fit(ball, ball_fit):
+    """Three segments, each starting from all coordinates (a quaternion divided by its norm for the
+    solve, its continuity defect holding the raw entries at unit norm) and the independent speeds:
+    the polished answer is the single-shooting fit's, to 0.1 of its standard errors (each fit stops
+    within GN_STOP_TOL = 0.05 standard errors of the minimum)."""
+    mech, p, *_ = ball
+    guess = dict(p, k2=jnp.asarray(0.38), a=jnp.asarray(0.105))
+    res = nh.fit(
+        mech, guess, _record(ball, noise=True), free=FREE, positive=FREE, observe=OBSERVE, noise=NOISE,
+        speed_names=SPEEDS, rtol=RTOL, atol=1e-12, shooting=3,
+    )  # fmt: skip
+    assert res.converged and res.labels == ball_fit.labels
+    np.testing.assert_array_less(np.abs(res.values - ball_fit.values), 0.1 * ball_fit.std)

@@ -216,14 +216,18 @@ def _as_list(x):
 
 
 def _local_rates(t, y, i0, window=RATE_WINDOW):
-    """Value and slope of each column of y at sample i0 from a local quadratic fit."""
+    """Value and slope of each column of y at sample i0 from a local quadratic fit, and their
+    standard errors (each (k,)), from the fit's residuals: noise and the part of the motion a
+    quadratic misses alike."""
     n = t.shape[0]
     lo = max(0, min(i0 - window // 2, n - window))
     sl = slice(lo, min(n, lo + window))
     tt = t[sl] - t[i0]
     V = np.stack([np.ones_like(tt), tt, tt**2], axis=1)
     coef, *_ = np.linalg.lstsq(V, y[sl], rcond=None)
-    return coef[0], coef[1]
+    s2 = np.sum((y[sl] - V @ coef) ** 2, axis=0) / max(V.shape[0] - 3, 1)
+    C = np.linalg.pinv(V.T @ V)
+    return coef[0], coef[1], np.sqrt(s2 * C[0, 0]), np.sqrt(s2 * C[1, 1])
 
 
 @one_shot_jit
@@ -440,19 +444,22 @@ def prepare(
     def targets(values, slopes):  # the observed channels' rates: q̇ of a coordinate, a velocity itself
         return np.where(coordinate, slopes, values)
 
-    # weights of those rates: 1/(their noise), a slope's from the noise σ over the window's duration
-    window = float(data.t[min(RATE_WINDOW, n) - 1] - data.t[0])
-    weights = np.where(coordinate, window, 1.0) / np.asarray(sigma, dtype=float)
+    def weights(value_std, slope_std):  # 1/(standard error) of those rates, at least the noise's share
+        floor = np.asarray(sigma, dtype=float) / np.where(coordinate, window, 1.0)
+        return 1.0 / np.maximum(np.where(coordinate, slope_std, value_std), 1e-3 * floor)
 
+    window = float(data.t[min(RATE_WINDOW, n) - 1] - data.t[0])  # s
     # starting initial state: data at t0 for the observed coordinates, rates from a local fit
-    q_start, rates = _local_rates(data.t, y, 0)
+    q_start, rates, q_err, rate_err = _local_rates(data.t, y, 0)
     q_init = q0_fixed.copy()
     if q0 is None:
         q_init[list(positions)] = y[0, [column[i] for i in positions]]
     if qd0 is not None:
         v0 = np.asarray(qd0, dtype=float)[list(problem.independent)]
     else:
-        v0 = _independent_from_rates(problem, jnp.asarray(q_init, f), targets(q_start, rates), t0, params, weights)
+        v0 = _independent_from_rates(
+            problem, jnp.asarray(q_init, f), targets(q_start, rates), t0, params, weights(q_err, rate_err)
+        )
     theta0 = [np.asarray(par.pack()), q_init[list(positions)], np.zeros(3 * len(rotations)), v0]
     if shooting > 1:
         observed_q = [i for i in observed if i < s]
@@ -464,11 +471,16 @@ def prepare(
             q_guess = np.zeros((n, s))
         for st in starts[1:]:
             q_seg = q_guess[st].copy()
-            val, rate = _local_rates(data.t, y, st)
+            val, rate, val_err, rate_err = _local_rates(data.t, y, st)
             q_seg[observed_q] = val[[column[i] for i in observed_q]]
             q_seg = nominal_coordinates(mech, s, q_seg)  # a measured quaternion at unit norm
             v_seg = _independent_from_rates(
-                problem, jnp.asarray(q_seg, f), targets(val, rate), float(data.t[st]), params, weights
+                problem,
+                jnp.asarray(q_seg, f),
+                targets(val, rate),
+                float(data.t[st]),
+                params,
+                weights(val_err, rate_err),
             )
             theta0 += [q_seg, v_seg]
     theta0 = jnp.concatenate([jnp.asarray(x, f).reshape(-1) for x in theta0])
