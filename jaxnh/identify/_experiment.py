@@ -488,8 +488,8 @@ class Limits:
         stick: a friction contact's static cone (`StickLimit`): the utilisation
             |λ|/(μs N lever) of its row must stay ≤ 1 along the motion.
         energy: max energy drawn from the drives over the experiment, J:
-            `∫ Σ_i max(Q_i q_i', 0) dt` over the generalized forces Q.
-        power: max drawn power `Σ_i max(Q_i q_i', 0)` at any sample, W.
+            `∫ Σ_i max(Q_i u_i, 0) dt` over the generalized forces Q and the velocities u (speeds, or q̇).
+        power: max drawn power `Σ_i max(Q_i u_i, 0)` at any sample, W.
         std: {label: max standard error in θ units} (relative for positive
             parameters), e.g. "no worse than the present experiment".
     Input amplitude bounds are built into the inputs (`jaxnh.profiles.Bounded`).
