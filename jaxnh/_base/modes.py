@@ -20,6 +20,15 @@ A first derivative in either mode, and forward mode over reverse mode, are uncha
 over reverse mode (`jax.grad(jax.grad(f))`), which would have to transpose that backward loop,
 raises `TypeError(message)`.
 
+`differentiated_once(tree, message)` refuses a derivative of a derivative in any mode, before the
+solve's own derivative rules are reached: an identity whose derivative rule returns its value
+through a second identity primitive, `jaxnh_differentiated`, and passes the tangent unchanged. In a
+first derivative that second primitive is applied to values nothing else differentiates; inside a
+second derivative the value it marks is itself being differentiated, and its derivative rule
+raises `TypeError(message)`. It is placed on a solve's inputs, so it is met in the program's
+forward part, before the backward pass of a custom VJP that cannot be differentiated again (diffrax's
+`BacksolveAdjoint`, whose failure there names neither the adjoint nor the fix).
+
 They are built with JAX's public interface for primitives (`jax.extend.core.Primitive` and the rule
 tables of `jax.interpreters`, the interface JAX documents for defining primitives).
 """
@@ -32,7 +41,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
 
-__all__ = ["forward_only", "reverse_once"]
+__all__ = ["differentiated_once", "forward_only", "reverse_once"]
 
 
 _forward_only_p = Primitive("jaxnh_forward_only")
@@ -90,3 +99,37 @@ def reverse_once(tree, message: str):
     return jax.tree_util.tree_map(
         lambda x: _reverse_once_p.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree
     )
+
+
+_once_p = Primitive("jaxnh_differentiated_once")
+_once_p.def_impl(lambda x, *, message: x)
+_once_p.def_abstract_eval(lambda x, *, message: x)
+mlir.register_lowering(_once_p, lambda ctx, x, *, message: [x])
+_marked_p = Primitive("jaxnh_differentiated")
+_marked_p.def_impl(lambda x, *, message: x)
+_marked_p.def_abstract_eval(lambda x, *, message: x)
+mlir.register_lowering(_marked_p, lambda ctx, x, *, message: [x])
+
+
+def _once_jvp(primals, tangents, *, message):
+    return _marked_p.bind(primals[0], message=message), tangents[0]
+
+
+def _marked_jvp(primals, tangents, *, message):
+    raise TypeError(message)
+
+
+batching.primitive_batchers[_once_p] = lambda args, dims, *, message: (_once_p.bind(args[0], message=message), dims[0])
+batching.primitive_batchers[_marked_p] = lambda args, dims, *, message: (
+    _marked_p.bind(args[0], message=message),
+    dims[0],
+)
+ad.primitive_jvps[_once_p] = _once_jvp
+ad.primitive_jvps[_marked_p] = _marked_jvp
+
+
+def differentiated_once(tree, message: str):
+    """`tree` (a solve's inputs) unchanged in value and in its first derivative, in either mode; a
+    derivative of that derivative (`jax.grad(jax.grad(f))`, `jax.hessian(f)`, any nesting) raises
+    `TypeError(message)` when JAX traces it."""
+    return jax.tree_util.tree_map(lambda x: _once_p.bind(x, message=message) if eqx.is_inexact_array(x) else x, tree)

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
 
-from jaxnh._base.modes import forward_only, reverse_once
+from jaxnh._base.modes import differentiated_once, forward_only, reverse_once
 from jaxnh._base.types import PyTree
 from jaxnh._solve.stepping import MappedSolver, SensitivityMaps
 
@@ -162,6 +162,16 @@ def diffrax_solve(
             lambda c: c.norm, controller, lambda e: _masked_rms(jax.flatten_util.ravel_pytree(e)[0], flat_mask)
         )
     kwargs = {} if progress_meter is None else {"progress_meter": progress_meter}
+    if isinstance(adjoint, diffrax.BacksolveAdjoint):
+        # diffrax's continuous adjoint is a custom VJP that can be differentiated once: a derivative
+        # of its derivative fails inside its backward pass with equinox's "Unexpected tangent"
+        y0, args = differentiated_once(
+            (y0, args),
+            "simulate: adjoint=diffrax.BacksolveAdjoint() gives first derivatives only: diffrax's continuous "
+            "adjoint cannot itself be differentiated (jax.grad(jax.grad(f)), jax.hessian(f), a derivative "
+            "inside another). For second derivatives pass adjoint=diffrax.DirectAdjoint() (every order and "
+            "mode), or the default adjoint and take jax.jacfwd(jax.grad(f)) or jax.hessian(f)",
+        )
     if isinstance(adjoint, (diffrax.RecursiveCheckpointAdjoint, diffrax.BacksolveAdjoint)):
         name = type(adjoint).__name__
         y0, args = reverse_once(
