@@ -37,6 +37,7 @@ from hypothesis import strategies as st  # noqa: E402
 import jaxnh as nh  # noqa: E402
 from benchmarks import (
     reliability_cases as R,  # noqa: E402
+    reliability_hunt as H,  # noqa: E402
     reliability_nonlinear as N,  # noqa: E402
     reliability_pendulum as P,  # noqa: E402
 )
@@ -180,6 +181,18 @@ def run_nonlinear(tally, n):
     with timed(tally, "nonlinear constraints"):
         for api, cls, case, outcome in N.run_all(counts):
             tally.add(api, cls, case, outcome, case.what)
+
+
+def run_hunt(tally, n):
+    """The hunt families (benchmarks/reliability_hunt.py, issue 46): fd_gradient, linearize with a
+    given S, Kvaerno5 at report times, float32 over a long horizon, and the words of failures."""
+    counts = dict(fd=n["h_fd"], s=n["h_s"], fail=n["h_fail"], kv=n["h_kv"], f32=n["h_f32"])
+    t = time.process_time()
+    for api, cls, case, outcome in H.run_all(counts):  # (a generator: each case runs as it is drawn)
+        now = time.process_time()
+        tally.seconds[f"hunt: {H.family_of(api)}"] += now - t
+        t = now
+        tally.add(api, cls, case, outcome, case.what)
 
 
 def run_sharpness(tally, n):
@@ -364,6 +377,8 @@ def repro(row, case, outcome) -> str:
             + (f"qd={np.asarray(case.qd).tolist()!r}, " if case.qd is not None else "")
             + f"ts={np.asarray(case.ts).tolist()!r}"
         )
+    if case.family == H.FAMILY:
+        return H.repro(row, case)
     if case.family == "locked" and case.params is not None:
         return (
             f"simulate(LOCKED, params={ {k: float(v) for k, v in case.params.items()}!r},\n"
@@ -374,6 +389,8 @@ def repro(row, case, outcome) -> str:
 
 
 def _family(api, cls):
+    if H.family_of(api):
+        return H.family_of(api)
     if api.startswith("nonlinear"):
         return "shafts, declared nonlinear constraint (nonlinear_constraints=True)"
     if "pendulum" in api:
@@ -452,6 +469,9 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
         "`consistent_velocities` (against the exact kinetic-energy projection), with classes near and "
         "at the fold of the quadratic c (∂c/∂qd singular when a1 = a2 = 0) and a start on its far root."
     )
+    add("")
+    for line in H.text():
+        add(line)
     add("")
     total = collections.Counter()
     for v in tally.counts.values():
@@ -648,7 +668,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="fewer examples per class (a smoke run)")
     ap.add_argument(
         "--only",
-        choices=("nonlinear",),
+        choices=("nonlinear", "hunt"),
         help="run one family and print its outcomes per interface and class (RELIABILITY.md is not written)",
     )
     args = ap.parse_args(argv)
@@ -658,20 +678,25 @@ def main(argv=None):
         dict(eager=8, jit=3, batches=3, lin=4, fit=1, csv=5, bytes=50)
         | dict(p_eager=3, p_jit=2, p_batches=1, p_event=3, p_dense=3, p_cv=2)
         | dict(nl_eager=2, nl_jit=1, nl_batches=1, nl_lin=2, nl_cv=2, nl_fit=0)
+        | dict(h_fd=5, h_s=2, h_fail=1, h_kv=1, h_f32=1)
         if args.quick
         else dict(eager=60, jit=15, batches=12, lin=30, fit=3, csv=40, bytes=400)
         | dict(p_eager=20, p_jit=10, p_batches=5, p_event=20, p_dense=30, p_cv=10)
         | dict(nl_eager=10, nl_jit=4, nl_batches=2, nl_lin=8, nl_cv=8, nl_fit=2)
+        | dict(h_fd=40, h_s=12, h_fail=4, h_kv=4, h_f32=3)
     )
     tally = Tally()
     if args.only:
-        run_nonlinear(tally, n)
+        (run_hunt if args.only == "hunt" else run_nonlinear)(tally, n)
+        if args.only == "hunt":
+            print("\n".join(H.text()[-1:]))
         return print_only(tally, time.process_time() - started)
     run_simulate(tally, n["eager"], n["jit"], n["batches"])
     run_sharpness(tally, n["eager"] // 2)
     run_linearize(tally, n["lin"])
     run_pendulum(tally, n)
     run_nonlinear(tally, n)
+    run_hunt(tally, n)
     cases_gm = R.gradient_matrix_cases()
     gm_default = R.run_gradient_matrix(cases_gm)
     gm_eager = R.run_gradient_matrix_eager(cases_gm)
