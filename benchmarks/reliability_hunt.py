@@ -212,14 +212,24 @@ def run_fd(case: HCase) -> R.Outcome:
         return _words(str(e), FD_WORDS)
     except Exception as e:  # noqa: BLE001
         return R.Outcome(R.UNCLEAR_ERROR, f"{type(e).__name__}: {e}"[:160])
-    g = float(g)
+    return judge_fd(case, float(g))
+
+
+def fd_exact(case: HCase) -> tuple[float, float]:
+    """(∂f/∂x, the allowance) at the case's x, from the values as rounded to its dtype."""
+    s = case.spec
+    dtype = np.float32 if s["dtype"] == "float32" else np.float64
+    p64 = {k: float(dtype(s[k])) for k in ("x", "A", "b", "c0", "c1", "c2", "c3") if k in s}
+    _, exact, F, D, L = _fd_terms(s["kind"], p64, s.get("k"))
+    return exact, FD_C * float(np.finfo(dtype).eps) ** (2 / 3) * (D + F / L)
+
+
+def judge_fd(case: HCase, g: float) -> R.Outcome:
+    """The outcome of fd_gradient's result g for the case."""
     if not np.isfinite(g):
         return R.Outcome(R.FAILURE, f"non-finite result {g}")
-    p64 = {k: float(v) for k, v in p.items()}  # the values as rounded to the dtype
-    _, exact, F, D, L = _fd_terms(s["kind"], p64, s.get("k"))
-    eps = float(jnp.finfo(dtype).eps)
-    scale = D + F / L
-    tol = FD_C * eps ** (2 / 3) * scale
+    exact, tol = fd_exact(case)
+    scale = tol / (FD_C * float(np.finfo(np.float32 if case.spec["dtype"] == "float32" else np.float64).eps) ** (2 / 3))
     err = abs(g - exact)
     if err <= tol:
         _ratio("fd_gradient", err, tol)
