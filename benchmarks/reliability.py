@@ -523,15 +523,19 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
     add("")
     add("## Known library issues found")
     add("")
-    if not R.KNOWN_ISSUES:
-        add("None open (`KNOWN_ISSUES` in `benchmarks/reliability_cases.py` is empty).")
+    known_issues = {**R.KNOWN_ISSUES, **H.KNOWN_ISSUES}
+    if not known_issues:
+        add(
+            "None open (`KNOWN_ISSUES` in `benchmarks/reliability_cases.py` and "
+            "`benchmarks/reliability_hunt.py` are empty)."
+        )
         add("")
     for key in sorted(k for k in tally.bad if k != "UNKNOWN"):
         items = tally.bad[key]
         kinds = collections.Counter(o.kind for _, _, o in items)
         add(f"### `{key}` — {', '.join(f'{n} {k}' for k, n in kinds.items())}")
         add("")
-        add(R.KNOWN_ISSUES.get(key, ""))
+        add(known_issues.get(key, ""))
         add("")
         rows = collections.Counter(f"{r[0]} / {r[1]}" for r, _, _ in items)
         add("Seen in: " + "; ".join(f"{r} ({n})" for r, n in rows.most_common()) + ".")
@@ -553,7 +557,7 @@ def write(tally, cases_gm, args, elapsed, undeclared=()):
         add(
             f"* `{key}`: "
             + ", ".join(f"{n} {k}" for k, n in cnt.most_common())
-            + ("" if key in tally.bad else f" — {R.KNOWN_ISSUES.get(key, 'fixed; its cases are kept')}")
+            + ("" if key in tally.bad else f" — {known_issues.get(key, 'fixed; its cases are kept')}")
         )
     add("")
     if "UNKNOWN" in tally.bad:
