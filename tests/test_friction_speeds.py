@@ -45,7 +45,9 @@ every Runge–Kutta method integrates them exactly: only the root finder and rou
 rows (and the Chaplygin ball's T) involve the integrated orientation, whose error is the solver's:
 the local error per step is kept below RTOL |y| + ATOL, and over the O(1) s runs here (tens of
 steps) its global error stays a small multiple of RTOL (3e-12 measured); `INTEGRATED` = 10 RTOL
-+ EXACT bounds those. A quaternion is rescaled after every step and at every report, so
++ EXACT bounds those. The Chaplygin ball's motion is faster and takes more steps: there the bound
+is the sum of the local errors the step control allowed, RTOL per accepted step, plus EXACT.
+A quaternion is rescaled after every step and at every report, so
 | |e| − 1 | is the rounding of one division and one square root: ≤ 4 eps.
 """
 
@@ -313,32 +315,50 @@ def contact_momentum(q, u, p):
 def test_chaplygin_ball_thrown_sliding_keeps_its_contact_momentum():
     p = {**chaplygin.default_params(), "mu_s": jnp.asarray(0.3), "mu_k": jnp.asarray(0.2)}
     q0, u0 = chaplygin.initial_state(p)
-    u0 = u0.at[:2].add(jnp.array([0.3, -0.2]))  # thrown: the centre 0.36 m/s off rolling
+    throw = jnp.array([1.5, -1.0])  # the centre 1.8 m/s off rolling: it slips for about 0.2 s
+    u0 = u0.at[:2].add(throw)
+    slip0 = float(jnp.linalg.norm(throw))
     ts = jnp.linspace(0.0, 0.5, 11)
-    sols = {}
+    tau = math.sqrt(EPS) * 2 * float(jnp.linalg.norm(u0))  # m/s: see the rolling rows below
+    sols, budgets = {}, {}
     for method in METHODS:
         sol = nh.simulate(
             chaplygin_ball(), p, q0, u0, ts, method=method, rtol=RTOL, atol=ATOL, max_transitions=4,
             record=("energy", "residual"),
         )  # fmt: skip
         assert sol.message == "success"
+        # this motion is not polynomial: its global error is bounded by the sum of the local errors
+        # the step control allowed, RTOL (relative) per accepted step (the run is too short for the
+        # errors to grow), plus the root finder's and rounding's EXACT
+        budget = RTOL * int(sol.stats["num_accepted_steps"]) + EXACT
         ((t, kind),) = contacts(sol).transitions("table")
-        assert kind == "slip→stick" and 0.05 < t < 0.45
+        assert kind == "slip→stick" and 0.05 < t < 0.45, t
         K = np.asarray(jax.vmap(contact_momentum, (0, 0, None))(sol.q, sol.u, p))
         scale = float(np.linalg.norm(K[0]))
-        np.testing.assert_allclose(K, np.broadcast_to(K[0], K.shape), rtol=0, atol=INTEGRATED * scale)
+        np.testing.assert_allclose(K, np.broadcast_to(K[0], K.shape), rtol=0, atol=budget * scale)
         E = np.asarray(sol.energy)
         lost = float(contacts(sol).dissipated_energy[0])
-        assert lost > 0.01 * E[0]
-        assert abs(E[0] - E[-1] - lost) <= INTEGRATED * E[0]
-        assert float(np.max(np.abs(np.asarray(sol.residual)[~slipping(sol)[:, 0]]))) <= INTEGRATED * 0.36
+        assert lost > 0.1 * E[0]
+        assert abs(E[0] - E[-1] - lost) <= budget * E[0], (E[0] - E[-1], lost, budget)
+        # rolling, the rows hold what they were at the lock: this slip turns as it stops, so it stops
+        # within the regularisation of its direction, tau = √eps × the contact's velocity scale
+        # (`Mode`; ≤ 2 ‖u0‖ for these rows of unit and radius-sized coefficients), not at 0
+        rolling = ~slipping(sol)[:, 0]
+        assert rolling.any()
+        assert float(np.max(np.abs(np.asarray(sol.residual)[rolling]))) <= budget * slip0 + tau
         assert unit_error(sol) <= UNIT
-        sols[method] = sol
+        sols[method], budgets[method] = sol, budget
+    # the two formulations agree to their budgets until the lock; there Appell's engaged rows hold
+    # c = 0 exactly while Lagrange's keep the remainder (≤ tau): the speeds then differ by up to
+    # tau/a (rad/s) and the orientations by that over the rest of the run
     lag, app = sols["lagrange"], sols["appell"]
+    budget = budgets["lagrange"] + budgets["appell"]
+    lock = tau / float(p["a"])
     t_l, t_a = (float(contacts(s).transition_times[0, 0]) for s in (lag, app))
-    assert abs(t_l - t_a) <= INTEGRATED * t_l
-    np.testing.assert_allclose(np.asarray(lag.q), np.asarray(app.q), rtol=0, atol=INTEGRATED)
-    np.testing.assert_allclose(np.asarray(lag.u), np.asarray(app.u), rtol=0, atol=INTEGRATED * 40)
+    assert abs(t_l - t_a) <= budget * t_l
+    np.testing.assert_allclose(np.asarray(lag.q), np.asarray(app.q), rtol=0, atol=budget + lock * float(ts[-1]))
+    u_scale = float(jnp.max(jnp.abs(u0)))
+    np.testing.assert_allclose(np.asarray(lag.u), np.asarray(app.u), rtol=0, atol=budget * u_scale + lock)
 
 
 def test_a_quaternion_off_unit_norm_is_refused():
