@@ -257,7 +257,7 @@ def test_unstable_mode_grows_at_the_linearised_rate():
     P = _np_params(p)
     J = _linearisation(SPIN, P)
     lam, left = np.linalg.eig(J.T)  # left eigenvectors of J: wᵀ J = λ wᵀ
-    k = int(np.argmax(lam.real))
+    k = int(np.argmax(np.real(lam)))
     y = np.stack([_reduced_state(qi, ui) for qi, ui in zip(np.asarray(sol.q), np.asarray(sol.u))])
     y_eq = np.array([0.0, 0.0, 1.0, 0.0, 0.0, SPIN])
     c = (y - y_eq) @ left[:, k]  # the modal amplitude, c(t) = c(0) e^{λ t} to first order
