@@ -44,21 +44,24 @@ from jax.interpreters import ad, batching, mlir
 __all__ = ["differentiated_once", "forward_only", "reverse_once"]
 
 
-_forward_only_p = Primitive("jaxnh_forward_only")
-_forward_only_p.def_impl(lambda x, *, message: x)
-_forward_only_p.def_abstract_eval(lambda x, *, message: x)
-mlir.register_lowering(_forward_only_p, lambda ctx, x, *, message: [x])
+def _identity_primitive(name: str) -> Primitive:
+    """An identity primitive carrying a `message` parameter: value, lowering and batching rules
+    (its derivative rules are each primitive's own)."""
+    p = Primitive(name)
+    p.def_impl(lambda x, *, message: x)
+    p.def_abstract_eval(lambda x, *, message: x)
+    mlir.register_lowering(p, lambda ctx, x, *, message: [x])
+    batching.primitive_batchers[p] = lambda args, dims, *, message: (p.bind(args[0], message=message), dims[0])
+    return p
 
 
-def _batch(args, dims, *, message):
-    return _forward_only_p.bind(args[0], message=message), dims[0]
+_forward_only_p = _identity_primitive("jaxnh_forward_only")
 
 
 def _transpose(cotangent, x, *, message):
     raise TypeError(message)
 
 
-batching.primitive_batchers[_forward_only_p] = _batch
 ad.deflinear2(_forward_only_p, _transpose)
 
 
@@ -70,14 +73,7 @@ def forward_only(tree, message: str):
     )
 
 
-_reverse_once_p = Primitive("jaxnh_reverse_once")
-_reverse_once_p.def_impl(lambda x, *, message: x)
-_reverse_once_p.def_abstract_eval(lambda x, *, message: x)
-mlir.register_lowering(_reverse_once_p, lambda ctx, x, *, message: [x])
-
-
-def _batch_once(args, dims, *, message):
-    return _reverse_once_p.bind(args[0], message=message), dims[0]
+_reverse_once_p = _identity_primitive("jaxnh_reverse_once")
 
 
 def _transpose_once(cotangent, x, *, message):
@@ -86,7 +82,6 @@ def _transpose_once(cotangent, x, *, message):
     return [_forward_only_p.bind(cotangent, message=message)]
 
 
-batching.primitive_batchers[_reverse_once_p] = _batch_once
 ad.deflinear2(_reverse_once_p, _transpose_once)
 
 
@@ -101,14 +96,8 @@ def reverse_once(tree, message: str):
     )
 
 
-_once_p = Primitive("jaxnh_differentiated_once")
-_once_p.def_impl(lambda x, *, message: x)
-_once_p.def_abstract_eval(lambda x, *, message: x)
-mlir.register_lowering(_once_p, lambda ctx, x, *, message: [x])
-_marked_p = Primitive("jaxnh_differentiated")
-_marked_p.def_impl(lambda x, *, message: x)
-_marked_p.def_abstract_eval(lambda x, *, message: x)
-mlir.register_lowering(_marked_p, lambda ctx, x, *, message: [x])
+_once_p = _identity_primitive("jaxnh_differentiated_once")
+_marked_p = _identity_primitive("jaxnh_differentiated")
 
 
 def _once_jvp(primals, tangents, *, message):
@@ -119,11 +108,6 @@ def _marked_jvp(primals, tangents, *, message):
     raise TypeError(message)
 
 
-batching.primitive_batchers[_once_p] = lambda args, dims, *, message: (_once_p.bind(args[0], message=message), dims[0])
-batching.primitive_batchers[_marked_p] = lambda args, dims, *, message: (
-    _marked_p.bind(args[0], message=message),
-    dims[0],
-)
 ad.primitive_jvps[_once_p] = _once_jvp
 ad.primitive_jvps[_marked_p] = _marked_jvp
 
