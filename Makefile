@@ -1,6 +1,7 @@
 # make demo       — set up .venv (if missing) and run the main job on the embedded default data
-# make test       — set up .venv (if missing) and run the whole test suite
-# make test-quick — the quick tier: every test not marked slow
+# make test       — set up .venv (if missing) and run the test suite as CI does (every test not marked extended)
+# make test-quick — the quick tier: every test not marked slow (nor extended)
+# make test-all   — every test, the extended tier included
 # make test-min   — a separate .venv-min with the oldest declared dependency versions; runs the quick tier
 # make docs       — build the documentation site into site/ (examples executed; strict: warnings fail)
 #                   warm builds reuse executed examples from .cache/docs-exec; JAXNH_DOCS_CACHE=off to re-run all
@@ -16,7 +17,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 MIN_VENV := .venv-min
 
-.PHONY: demo test test-quick test-min docs docs-serve lint bench bench-quick bench-stale clean
+.PHONY: demo test test-quick test-all test-min docs docs-serve lint bench bench-quick bench-stale clean
 
 $(VENV)/.created:
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +36,9 @@ demo: $(STAMP)
 	$(VENV)/bin/jaxnh demo
 
 test: $(STAMP)
+	$(PY) -m pytest tests -m "not extended"
+
+test-all: $(STAMP)
 	$(PY) -m pytest tests
 
 test-quick: $(STAMP)

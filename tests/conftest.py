@@ -9,6 +9,11 @@ machine, and what a test compiles would depend on what ran before it. `JAXNH_CAC
 `enable_compilation_cache` change nothing; tests/test_cache.py passes its own folders explicitly.
 
 Compiled functions are shared within a module by module-level caches and fixtures.
+
+Tiers: `make test-quick` runs the tests not marked `slow`; `make test` (what CI runs) adds the slow
+ones except those marked `extended`; `make test-all` runs every test. An `extended` test is one
+more case of a class a quicker test already guards (another formulation, frame or option pair, a
+longer horizon), or a packaging check; it counts as slow too.
 """
 
 import gc
@@ -19,6 +24,14 @@ import pytest
 
 
 os.environ["JAXNH_CACHE_DIR"] = "off"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """An `extended` test is slow as well, so `-m "not slow"` leaves it out."""
+    for item in items:
+        if item.get_closest_marker("extended") is not None:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(autouse=True, scope="module")

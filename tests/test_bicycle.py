@@ -84,7 +84,7 @@ def test_upright_running_is_steady_and_the_rear_wheel_decouples(lagrange):
     np.testing.assert_allclose(A[:, :, 3], 0.0, atol=1e-12)  # ... and affects nothing
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_appell_with_newton_pitch_equals_lagrange(lagrange, appell):
     np.testing.assert_allclose(appell.A, np.asarray(lagrange.A)[[0, 1, 6]], rtol=1e-11, atol=1e-11)
     np.testing.assert_allclose(appell.mass, np.asarray(lagrange.mass)[[0, 1, 6]], rtol=1e-12, atol=1e-12)
@@ -154,7 +154,7 @@ def test_constraints_and_energy_hold(runs):
         assert np.ptp(E) < 1e-9 * abs(E[0])  # no dissipation in the Whipple model
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_nonlinear_appell_with_newton_pitch_equals_lagrange(runs):
     """The 7-coordinate Appell model (pitch by Newton) along the kicked run: ~50 s to compile."""
     q, qd = B.upright(5.0, P)

@@ -441,7 +441,7 @@ def test_fit_without_matplotlib_writes_json_and_exits_0(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["d.csv", "fit.json"]  # no figures folder, no temporary files
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_design_without_matplotlib_writes_csv_and_json(tmp_path):
     """The issue's case: the design ran, wrote its CSV and JSON, then died importing matplotlib (exit 1).
     Smallest settings: the embedded record's set-up is fixed, so most of the time is compilation

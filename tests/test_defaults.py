@@ -122,7 +122,7 @@ def _loss(theta, w, static, adjoint):
     return jnp.sum(sol.q**2) + jnp.sum(sol.qd**2)
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_forward_sensitivities_equal_reverse_mode_in_every_mode():
     """grad (under vmap) and jacfwd by forward sensitivities equal reverse mode.
 

@@ -127,7 +127,7 @@ def embedded():
     return exp, params, predict(exp)
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_zero_torques_diagnosis_names_the_ratio_before_any_data(embedded):
     exp, params, _ = embedded
     zero = V.VariatorParams(params.J1, params.J2, params.U21, Constant(0.0), Constant(0.0))
@@ -158,7 +158,7 @@ def test_prediction_agrees_with_the_fit_of_the_embedded_record(embedded):
 # --- the design criterion's gradient ---------------------------------------------------------------------
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_design_gradient_matches_central_differences():
     """Forward-over-forward derivative of log var(J1) + penalties with respect to the Fourier
     coefficients of a bounded motor torque, at rtol 1e-12, against central differences."""

@@ -235,7 +235,7 @@ def _cart_fits(record):
     return a, b
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_fit_in_speeds_agrees_with_the_fit_in_qdot(cart_record):
     """One record, one mechanism written twice: the parameters agree to 0.1 of their standard errors
     (each fit stops within GN_STOP_TOL = 0.05 standard errors of its minimum), their standard errors
@@ -251,7 +251,7 @@ def test_fit_in_speeds_agrees_with_the_fit_in_qdot(cart_record):
     assert a.labels[3:6] == ("x(t0)", "y(t0)", "theta(t0)") == b.labels[3:6]
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_experiment_in_speeds_agrees_with_the_experiment_in_qdot():
     """The same design, twice: the predicted standard errors of the parameters agree to 1e-8
     relative (both at the nominal motion; they differ by the integrators' errors at rtol 1e-10:
@@ -270,7 +270,7 @@ def test_experiment_in_speeds_agrees_with_the_experiment_in_qdot():
     np.testing.assert_allclose(b.std[:3], a.std[:3], rtol=1e-8)
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_multiple_shooting_in_speeds_reaches_the_same_fit(ball, ball_fit):
     """Three segments, each starting from all coordinates (a quaternion divided by its norm for the
     solve, its continuity defect holding the raw entries at unit norm) and the independent speeds:

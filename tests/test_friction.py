@@ -427,7 +427,7 @@ def test_vmap_over_mu_s_members_with_different_transitions():
     assert abs(float(contacts(sols).transition_times[2, 0, 0]) - variator_onset({**VAR, "mu_s": 0.02})) <= 1e-8
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_variator_gradients_agree_with_central_differences():
     """Derivatives of the slip time, the energy dissipated and φ1(T) with respect to the pressing
     force N, through two transitions; N is far from grazing (the slip lasts 0.36 s)."""
@@ -697,7 +697,7 @@ def test_stick_slip_on_a_stiff_belt_finds_every_transition(method):
     assert bool(capped.status == nh.STATUS.friction_transitions_exceeded), capped.message
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 @pytest.mark.parametrize("method", METHODS)
 def test_vmap_of_grad_agrees_with_a_loop_of_grad(method):
     """`jax.vmap(jax.grad(f))` through the restarts equals `jax.grad` member by member (rounding of

@@ -44,9 +44,9 @@ every Runge–Kutta method integrates them exactly: only the root finder and rou
 `EXACT` = 1e4 eps (10× the root finder's tolerance) bounds the relative errors. In body axes the
 rows (and the Chaplygin ball's T) involve the integrated orientation, whose error is the solver's:
 the local error per step is kept below RTOL |y| + ATOL, and over the O(1) s runs here (tens of
-steps) its global error stays a small multiple of RTOL (3e-12 measured); `INTEGRATED` = 10 RTOL
-+ EXACT bounds those. The Chaplygin ball's motion is faster and takes more steps: there the bound
-is the sum of the local errors the step control allowed, RTOL per accepted step, plus EXACT.
+steps) its global error is bounded by the sum of the local errors the step control allowed, RTOL
+(relative) per accepted step, plus EXACT: `integrated(sol)` (the runs are too short for the errors
+to grow; measured, the largest is 1.0e-9 after 68 steps, against a bound of 6.8e-9).
 A quaternion is rescaled after every step and at every report, so
 | |e| − 1 | is the rounding of one division and one square root: ≤ 4 eps.
 """
@@ -69,7 +69,13 @@ from jaxnh.rigid import quaternion_rate, rotation_from_quaternion
 EPS = float(np.finfo(np.float64).eps)
 RTOL, ATOL = 1e-10, 1e-12
 EXACT = 1e4 * EPS
-INTEGRATED = 10 * RTOL + EXACT
+
+
+def integrated(sol: nh.Solution) -> float:
+    """The relative error bound of a run in body axes: RTOL per accepted step, plus EXACT."""
+    return RTOL * int(sol.stats["num_accepted_steps"]) + EXACT
+
+
 UNIT = 4 * EPS
 G = 9.81  # m/s²
 METHODS = ("lagrange", "appell")
@@ -79,8 +85,8 @@ METHODS = ("lagrange", "appell")
 CASES = [
     ("lagrange", "space"),
     ("appell", "body"),
-    pytest.param("appell", "space", marks=pytest.mark.slow),
-    pytest.param("lagrange", "body", marks=pytest.mark.slow),
+    pytest.param("appell", "space", marks=pytest.mark.extended),
+    pytest.param("lagrange", "body", marks=pytest.mark.extended),
 ]
 TS = jnp.linspace(0.0, 1.0, 11)
 
@@ -205,7 +211,7 @@ def test_thrown_ball_slides_then_rolls(method, frame, spin):
     # the body's angular velocity: ω0 in body axes is ω0 itself at the identity orientation
     u0 = jnp.array([*v0, *w0])
     sol = run_ball(frame, method, p, jnp.concatenate([jnp.zeros(2), IDENTITY]), u0)
-    tol = EXACT if frame == "space" else INTEGRATED
+    tol = EXACT if frame == "space" else integrated(sol)
     assert sol.message == "success"
     ((t, kind),) = contacts(sol).transitions("ground")
     assert kind == "slip→stick"
@@ -248,11 +254,11 @@ def incline_threshold(p: dict) -> float:
 def test_ball_on_an_incline_rolls_below_the_threshold_and_slips_above(method, frame):
     q0, u0 = jnp.concatenate([jnp.zeros(2), IDENTITY]), jnp.zeros(5)
     ts = np.asarray(TS)
-    tol = EXACT if frame == "space" else INTEGRATED
     for factor, slips in ((0.99, False), (1.01, True)):
         alpha = factor * incline_threshold(BALL)
         p = {**BALL, "alpha": alpha}
         sol = run_ball(frame, method, p, q0, u0)
+        tol = EXACT if frame == "space" else integrated(sol)
         assert sol.message == "success"
         assert contacts(sol).transitions("ground") == []
         assert np.all(slipping(sol)[:, 0] == slips)
@@ -282,7 +288,7 @@ def test_ball_on_an_incline_rolls_below_the_threshold_and_slips_above(method, fr
         theta = spin * ts**2
         e = np.stack([np.cos(theta / 2), 0 * theta, np.sin(theta / 2), 0 * theta], axis=1)
         assert theta[-1] > 10.0  # many turns
-        np.testing.assert_allclose(np.asarray(sol.q[:, 2:]), e, rtol=0, atol=INTEGRATED * theta[-1])
+        np.testing.assert_allclose(np.asarray(sol.q[:, 2:]), e, rtol=0, atol=integrated(sol) * theta[-1])
         assert unit_error(sol) <= UNIT
 
 
@@ -311,7 +317,7 @@ def contact_momentum(q, u, p):
     return J @ u[2:] + p["m"] * p["a"] * jnp.stack([-u[1], u[0], 0.0 * u[0]])
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_chaplygin_ball_thrown_sliding_keeps_its_contact_momentum():
     p = {**chaplygin.default_params(), "mu_s": jnp.asarray(0.3), "mu_k": jnp.asarray(0.2)}
     q0, u0 = chaplygin.initial_state(p)
@@ -330,7 +336,7 @@ def test_chaplygin_ball_thrown_sliding_keeps_its_contact_momentum():
         # this motion is not polynomial: its global error is bounded by the sum of the local errors
         # the step control allowed, RTOL (relative) per accepted step (the run is too short for the
         # errors to grow), plus the root finder's and rounding's EXACT
-        budget = RTOL * int(sol.stats["num_accepted_steps"]) + EXACT
+        budget = integrated(sol)
         ((t, kind),) = contacts(sol).transitions("table")
         assert kind == "slip→stick" and 0.05 < t < 0.45, t
         K = np.asarray(jax.vmap(contact_momentum, (0, 0, None))(sol.q, sol.u, p))

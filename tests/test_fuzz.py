@@ -338,7 +338,7 @@ def test_simulate_in_speeds_under_jit_throws_in_graph(cls):
     settle(results, f"jax.jit(simulate) in speeds, {cls}")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_simulate_in_speeds_under_vmap_and_grad():
     """One batch holds a case of every value class in speeds: values, and the gradient with respect to
     (J2, c1, se) along a random direction against the reference's central differences (the motion does
@@ -461,7 +461,7 @@ def test_pendulum_imposed_eagerly(cls):
     settle(results, f"pendulum, imposed, {cls}")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 @pytest.mark.parametrize("method", ["lagrange", "appell"])
 def test_pendulum_eliminated_eagerly_and_under_jit(method):
     """y eliminated by Newton's method: the other branch is refused (holonomic_branch), a swing
@@ -488,7 +488,7 @@ def test_pendulum_under_vmap_and_grad():
     settle(results, "pendulum, jit(vmap(value_and_grad))")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_pendulum_events():
     """Terminating events x = xe: the time eagerly, ∂t/∂(L, c) by jit(vmap(grad)) and jit(vmap(jacfwd))
     (adjoint=diffrax.ForwardMode()), against SciPy's event location and its central differences."""
@@ -501,7 +501,7 @@ def test_pendulum_events():
     settle(results, "pendulum, events")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_pendulum_dense_output():
     """sol.evaluate at random times, eagerly and under jit(vmap(value_and_grad)), against SciPy's dense output."""
     cases = P.dense_cases(draw_all(P.pendulum_cases("valid"), 2))
@@ -735,7 +735,7 @@ def test_nonlinear_simulate_eagerly_and_under_jit(method):
     settle(results, f"nonlinear, simulate ({method})")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 @pytest.mark.parametrize("method", N.METHODS)
 def test_nonlinear_under_vmap_and_grad(method):
     """One batch holds a case of every class (the far root with Lagrange's equations only): values, and

@@ -11,8 +11,8 @@ benchmarks/reliability_cases.py; an unclear error or a silent wrong answer fails
   ValueError naming acceleration_energy; NaN under jit), or is off at rounding level;
 * failure messages: inputs that must fail, judged clear only when the status and its words name
   the real cause (and its time);
-* Kvaerno5 at report times and float32 over 100–1000 s compile programs of their own or run long:
-  slow tier.
+* Kvaerno5 at report times, float32 over 100–1000 s and the failure-message classes that compile
+  a program of their own run long: extended tier (`make test-all`).
 
 Each family's mechanisms are module-level objects with traced parameters, so the cases of a class
 share one compiled program.
@@ -108,7 +108,7 @@ QUICK_FAILURES = ("dtmax not positive or not finite",)
 
 @pytest.mark.parametrize(
     "cls",
-    [c if c in QUICK_FAILURES else pytest.param(c, marks=pytest.mark.slow) for c in H.FAIL_CLASSES[:-1]],
+    [c if c in QUICK_FAILURES else pytest.param(c, marks=pytest.mark.extended) for c in H.FAIL_CLASSES[:-1]],
 )
 def test_failure_messages_name_the_cause(cls):
     """One case per class: the status of the real cause, its key words, no stiffness advice, the
@@ -119,7 +119,7 @@ def test_failure_messages_name_the_cause(cls):
     settle(results, f"failure messages, {cls}")
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_root_finder_failure_is_named():
     """Kvaerno5 with diffrax's root finder on a stiff damper (a program of its own): root_finder_failed
     naming optimistix.Newton, or a converged run right against SciPy's Radau."""
@@ -131,7 +131,7 @@ def test_root_finder_failure_is_named():
 # --- implicit solvers at report times; float32 over a long horizon (slow) ----------------------------
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_kvaerno5_at_drawn_report_times():
     """Two drawn cases (rtol, report grid, variator) with each of VeryChord/Lagrange, Newton/Lagrange and
     Newton/Appell: within the tolerance bound of tests/test_implicit_reports.py, or a failure status."""
@@ -153,7 +153,7 @@ def test_the_float32_bound_is_not_vacuous_and_holds_the_measured_error():
     assert 6.2e-3 < rel < 1.0, rel
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_float32_over_a_long_horizon():
     """One drawn case (the second: the first is Hypothesis's constant ratio) in float32 over 100–1000 s:
     within the bound from the tolerance, the steps and float32's time resolution, or a failure status."""

@@ -88,7 +88,7 @@ def _dependencies_folder(folder):
     return folder
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_sdist_installs_and_collects_its_own_tests(tmp_path):
     pytest.importorskip("build", reason="the test extra's `build` builds the sdist (pip install -e '.[test]')")
     started = time.perf_counter()

@@ -109,7 +109,7 @@ def test_bead_on_a_rough_ring_slows_as_the_closed_form():
     np.testing.assert_allclose(c.dissipated_energy[0], lost, rtol=30 * RTOL)
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_bead_gradient_and_batch_of_gradients_match_the_closed_form():
     def final_speed(muk):
         return jnp.linalg.norm(bead_solve(muk).qd[-1])

@@ -10,8 +10,8 @@ A combination that crashes with a message naming nothing, or returns a wrong ans
 success status, is kept as a strict xfail saying what happens.
 
 Tiers:
-* all pairs (`test_option_pairs`; slow-marked, about 5 minutes on one core: `make test` and CI
-  run it, `make test-quick` does not): a pairwise covering set, made by a small deterministic
+* all pairs (`test_option_pairs`; marked extended, about 15 minutes on 2 cores: `make test-all`
+  runs it, `make test` and CI do not): a pairwise covering set, made by a small deterministic
   greedy all-pairs generator (`pairwise`): every pair of values of two different options is in a
   case that works, or, for a pair that no case can make work (e.g. ForwardSensitivity with dense
   output), in a case whose refusal or failure that pair decides. No pair is left out as
@@ -719,7 +719,7 @@ def test_pairwise_set_covers_every_pair():
     assert all(expect(c).kind == "refused" for c in REFUSED)
 
 
-@pytest.mark.slow  # about 47 full programs to compile (5 min): in `make test` and CI, not `make test-quick`
+@pytest.mark.extended  # about 47 full programs to compile (15 min on 2 cores): `make test-all` only
 @pytest.mark.parametrize("case", params(QUICK))
 def test_option_pairs(case, capfd):
     check_case(case, capfd)
@@ -727,7 +727,7 @@ def test_option_pairs(case, capfd):
 
 FULL_PRODUCT = os.environ.get("JAXNH_FULL_OPTION_MATRIX") == "1"
 """The full product is about 1300 programs to compile (hours on 2 cores): opt-in with
-JAXNH_FULL_OPTION_MATRIX=1. `make test` runs the pairwise tier above, in which every pair of
+JAXNH_FULL_OPTION_MATRIX=1. `make test-all` runs the pairwise tier above, in which every pair of
 option values occurs."""
 
 

@@ -142,7 +142,7 @@ def test_second_derivatives_refused_by_name(name):
     assert not missing, f"the message lacks {missing}: {info.value}"
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 def test_backsolve_first_derivatives_unchanged_by_the_second_order_guard():
     """The guard that refuses a second derivative through BacksolveAdjoint leaves the first one as
     it was: jax.grad against the exact dphi1'/dJ2, and jax.vmap(jax.grad) against jax.grad.

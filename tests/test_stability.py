@@ -244,7 +244,7 @@ def exact_final_speed(J2):
     return z / jnp.sqrt(I1)
 
 
-@pytest.mark.slow
+@pytest.mark.extended
 @pytest.mark.parametrize("stabilization", ["baumgarte", "projection"])
 def test_gradient_through_stabilisation(stabilization):
     """d phi1'(0.685 s)/d J2 through each stabilisation, by the default derivative mode
