@@ -122,6 +122,22 @@ def test_bead_gradient_and_batch_of_gradients_match_the_closed_form():
     np.testing.assert_allclose(grads[1:], loop, rtol=1e-12, atol=0)
 
 
+@pytest.mark.slow  # two programs of their own (the eager solve and the batch): about 80 s
+def test_a_q0_off_the_ring_is_refused_as_without_contacts():
+    """The friction solve runs the checks of an initial state that every solve runs
+    (`diagnose.state_checks`): a bead 0.1 m inside the 0.5 m ring (g = 0.1 m, above √eps of its
+    scale, 0.5 m) is refused with `holonomic_violated` eagerly, and under vmap the member off the
+    ring gets that status while the member on it succeeds."""
+    off = jnp.array([0.4, 0.0])
+    with pytest.raises(nh.InvalidInitialState, match="holonomic constraints"):
+        nh.simulate(BEAD_MECH, BEAD, off, BEAD_QD0, BEAD_TS, rtol=RTOL, atol=ATOL)
+    statuses = jax.vmap(
+        lambda q: nh.simulate(BEAD_MECH, BEAD, q, BEAD_QD0, BEAD_TS, rtol=RTOL, atol=ATOL, throw=False).status
+    )(jnp.stack([off, BEAD_Q0]))
+    assert bool((statuses == nh.STATUS.holonomic_violated)[0])
+    assert bool((statuses == nh.STATUS.successful)[1])
+
+
 def test_appell_is_refused_by_name():
     with pytest.raises(ValueError, match=r"Multiplier.*method='lagrange'"):
         nh.simulate(BEAD_MECH, BEAD, BEAD_Q0, BEAD_QD0, BEAD_TS, method="appell")

@@ -1,7 +1,8 @@
 """What a solve checks and diagnoses about its own states, inside the compiled program.
 
-* `initial_checks`: the initial state against the mechanism (`jaxnh._model.checks`) and the
-  formulation's own conditions, as one `STATUS`;
+* `state_checks`: the checks of an initial state every solve runs (the friction solve too), and
+  `initial_checks`: those, the constraint rows (`jaxnh._model.checks`) and the formulation's own
+  conditions, as one `STATUS`;
 * `diagnose_stall`: what is wrong at the last state of a failed solve (a mass matrix gone
   singular, a dependent block gone singular);
 * `spectral_radius`: the stiffness estimate that tells a derivative through the steps of an
@@ -35,6 +36,8 @@ __all__ = [
     "holonomic_consistent",
     "on_branch",
     "initial_checks",
+    "state_checks",
+    "first_failure",
     "speeds_checks",
     "diagnose_stall",
     "spectral_radius",
@@ -158,32 +161,43 @@ def speeds_checks(mech, q, qd, t, params) -> tuple:
     return tuple(out)
 
 
+def state_checks(mech, q, qd, t, params) -> tuple:
+    """The checks of an initial state that do not depend on the formulation or the contacts, as
+    ((ok, STATUS item) pairs in the order they are reported, inertias): a positive definite mass
+    matrix, a user's S that agrees with T, the speeds' checks (`speeds_checks`) and a q0 on the
+    holonomic constraints g = 0. Shared by `simulate`'s solve and the friction solve, so a check
+    added here guards both; the inertias (the mass matrix's diagonal, kg·m² or kg) are the reference
+    of `diagnose_stall`."""
+    pd, inertias = mass_matrix_check(mech, q, qd, t, params)
+    out = [(pd, STATUS.mass_matrix_not_positive_definite)]
+    if mech.acceleration_energy is not None:  # a user's S must be T's: both are given, check one against the other
+        out.append((acceleration_energy_agrees(mech, q, qd, t, params), STATUS.acceleration_energy_mismatch))
+    out += speeds_checks(mech, q, qd, t, params)
+    if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
+        out.append((holonomic_consistent(mech, q, t, params), STATUS.holonomic_violated))
+    return tuple(out), inertias
+
+
+def first_failure(checks) -> tuple:
+    """(ok, STATUS) of (ok, STATUS item) pairs: the first pair that fails is reported."""
+    ok = jnp.asarray(True)
+    status = STATUS.successful
+    for good, item in checks:
+        status = STATUS.where(ok & ~good, item, status)  # pyright: ignore[reportArgumentType]
+        ok = ok & good
+    return ok, status
+
+
 def initial_checks(form, q, qd, t, params):
     """(ok, STATUS, inertias) for the initial state (q, qd) at t of a bound formulation; the
     inertias (the mass matrix's diagonal, kg·m² or kg) are the reference of `diagnose_stall`."""
     mech = form.mech
-    pd, inertias = mass_matrix_check(mech, q, qd, t, params)
-    # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
-    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
-    ok = pd
-    if mech.acceleration_energy is not None:  # a user's S must be T's: both are given, check one against the other
-        agrees = acceleration_energy_agrees(mech, q, qd, t, params)
-        status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
-        ok = ok & agrees
-    for good, item in speeds_checks(mech, q, qd, t, params):
-        status = STATUS.where(ok & ~good, item, status)
-        ok = ok & good
-    if mech.holonomic is not None:  # positions are checked like velocities: q0 must lie on g = 0
-        on = holonomic_consistent(mech, q, t, params)
-        status = STATUS.where(ok & ~on, STATUS.holonomic_violated, status)
-        ok = ok & on
+    checks, inertias = state_checks(mech, q, qd, t, params)
     if form.m:
         rows = constraint_row_checks(mech, q, qd, t, params)
         form_ok, form_status = form.check_given(q, qd, t, params, rows.A, inertias)
-        # the first failure in this order is reported
-        for good, item in (*rows.leading, (form_ok, form_status), *rows.trailing):
-            status = STATUS.where(ok & ~good, item, status)
-            ok = ok & good
+        checks = (*checks, *rows.leading, (form_ok, form_status), *rows.trailing)
+    ok, status = first_failure(checks)
     return ok, status, inertias
 
 

@@ -86,11 +86,10 @@ from jaxnh._model.checks import (
     consistency_tolerance,
     constraint_row_checks,
     constraint_scale,
-    mass_matrix_check,
 )
 from jaxnh._model.contacts import ContactLaw, Coulomb
 from jaxnh._model.mechanism import Mechanism
-from jaxnh._solve.diagnose import acceleration_energy_agrees, speeds_checks
+from jaxnh._solve.diagnose import first_failure, state_checks
 from jaxnh._solve.outputs import all_finite, bcast, input_sum, nan_link, no_grad, run_checked
 from jaxnh._solve.sensitivity import diffrax_solve, forward_mode_outputs, ForwardSensitivity
 from jaxnh._solve.solution import Solution
@@ -1027,13 +1026,12 @@ class _Watch(StepMaps):
 
 
 def _initial_checks(f: _Friction, q, qd, t, params):
-    """(ok, STATUS) of the initial state: the mass matrix, the constraint rows (all of them),
+    """(ok, STATUS) of the initial state: the checks every solve runs (`diagnose.state_checks`:
+    mass matrix, S against T, speeds, q0 on g = 0), the constraint rows (all of them),
     consistency of the rows that friction does not hold, the contacts' values and, for Appell's
     form, a regular dependent block."""
     mech = f.mech
-    pd, inertias = mass_matrix_check(mech, q, qd, t, params)
-    status = STATUS.where(pd, STATUS.successful, STATUS.mass_matrix_not_positive_definite)  # pyright: ignore[reportArgumentType]
-    ok = pd
+    checks, inertias = state_checks(mech, q, qd, t, params)
     rows = constraint_row_checks(mech, q, qd, t, params, f.held)
     A = rows.A
     N, mus, muk = f.values(q, qd, t, params)
@@ -1041,20 +1039,15 @@ def _initial_checks(f: _Friction, q, qd, t, params):
     split_ok = jnp.asarray(True)
     if f.kind == "appell":  # (the test of simulate's Appell form: `Appell.check`)
         split_ok = split_regular(mech, q, qd, t, params, f.s, f.m, f.independent, A, inertias)
-    if mech.acceleration_energy is not None:
-        agrees = acceleration_energy_agrees(mech, q, qd, t, params)
-        status = STATUS.where(ok & ~agrees, STATUS.acceleration_energy_mismatch, status)
-        ok = ok & agrees
-    for good, item in (
-        *speeds_checks(mech, q, qd, t, params),
-        *rows.leading,
-        (values_ok, STATUS.friction_values_invalid),
-        (split_ok, STATUS.singular_split),
-        *rows.trailing,
-    ):
-        status = STATUS.where(ok & ~good, item, status)
-        ok = ok & good
-    return ok, status
+    return first_failure(
+        (
+            *checks,
+            *rows.leading,
+            (values_ok, STATUS.friction_values_invalid),
+            (split_ok, STATUS.singular_split),
+            *rows.trailing,
+        )
+    )
 
 
 def _where_tree(cond, a, b):
