@@ -183,6 +183,7 @@ def first_failure(checks) -> tuple:
     ok = jnp.asarray(True)
     status = STATUS.successful
     for good, item in checks:
+        # (equinox types Enumerations as enum.Enum: an item STATUS inherits from diffrax looks like diffrax's)
         status = STATUS.where(ok & ~good, item, status)  # pyright: ignore[reportArgumentType]
         ok = ok & good
     return ok, status
