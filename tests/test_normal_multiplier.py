@@ -125,9 +125,10 @@ def test_bead_gradient_and_batch_of_gradients_match_the_closed_form():
 @pytest.mark.slow  # two programs of their own (the eager solve and the batch): about 80 s
 def test_a_q0_off_the_ring_is_refused_as_without_contacts():
     """The friction solve runs the checks of an initial state that every solve runs
-    (`diagnose.state_checks`): a bead 0.1 m inside the 0.5 m ring (g = 0.1 m, above √eps of its
-    scale, 0.5 m) is refused with `holonomic_violated` eagerly, and under vmap the member off the
-    ring gets that status while the member on it succeeds."""
+    (`diagnose.state_checks`): a bead 0.1 m inside the 0.5 m ring (g = 0.1 m, far above √eps of
+    its scale |∂g/∂q|·|q| + |g(0)| = 0.4 + 0.5 = 0.9 m) is refused with `holonomic_violated`
+    eagerly, and under vmap the member off the ring gets that status while the member on it
+    succeeds."""
     off = jnp.array([0.4, 0.0])
     with pytest.raises(nh.InvalidInitialState, match="holonomic constraints"):
         nh.simulate(BEAD_MECH, BEAD, off, BEAD_QD0, BEAD_TS, rtol=RTOL, atol=ATOL)
